@@ -1,0 +1,18 @@
+# Writes OUT, a C file holding every *.cl and *.h file of DIR as a NUL-terminated byte array,
+# and a table of (name, bytes, length) ending with a NULL name: embedded_kernels[].
+file(GLOB files RELATIVE ${DIR} ${DIR}/*.cl ${DIR}/*.h)
+list(SORT files)
+set(body "/* Generated from kernels/ by cmake/embed_kernels.cmake; do not edit. */\n#include <stddef.h>\n\n")
+set(table "")
+set(i 0)
+foreach(f ${files})
+  file(READ ${DIR}/${f} hex HEX)
+  string(REGEX REPLACE "([0-9a-f][0-9a-f])" "0x\\1," hex "${hex}")
+  string(APPEND body "static const char k${i}[] = {${hex}0x00};\n")
+  string(APPEND table "  {\"${f}\", k${i}, sizeof k${i} - 1},\n")
+  math(EXPR i "${i} + 1")
+endforeach()
+string(APPEND body "\nstruct embedded_kernel {\n  const char *name;\n  const char *data;\n  size_t len;\n};\n\n")
+string(APPEND body "const struct embedded_kernel embedded_kernels[] = {\n${table}  {NULL, NULL, 0},\n};\n")
+file(WRITE ${OUT}.tmp "${body}")
+file(RENAME ${OUT}.tmp ${OUT})

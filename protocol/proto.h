@@ -1,0 +1,155 @@
+/*
+ * The volfx wire protocol, shared by volfxd and its clients: NDJSON framing with a line
+ * limit, the JSON-RPC 2.0 envelope, error codes, limits, attachment formats and base64.
+ * This library never logs and never touches sockets; it turns bytes into messages and back.
+ */
+#ifndef VOLFX_PROTO_H
+#define VOLFX_PROTO_H
+
+#include <stddef.h>
+#include <stdint.h>
+
+#include <cjson/cJSON.h>
+
+#define PROTO_VERSION "1"
+#define PROTO_DEFAULT_HOST "127.0.0.1"
+#define PROTO_DEFAULT_PORT 7878
+#define PROTO_MAX_DEPTH 64 /* Deepest JSON nesting accepted in one message. */
+
+/* Error codes of SPEC §3: JSON-RPC's own, then volfx's. */
+#define PROTO_ERROR_MAP(XX)                                                                    \
+  XX(PARSE, -32700, "parse error")                                                             \
+  XX(INVALID_REQUEST, -32600, "invalid request")                                               \
+  XX(METHOD_NOT_FOUND, -32601, "method not found")                                             \
+  XX(INVALID_PARAMS, -32602, "invalid params")                                                 \
+  XX(INTERNAL, -32603, "internal error")                                                       \
+  XX(UNAUTHORIZED, -32001, "unauthorized")                                                     \
+  XX(BUSY, -32002, "busy")                                                                     \
+  XX(LIMIT, -32003, "limit exceeded")                                                          \
+  XX(NOT_FOUND, -32004, "not found")                                                           \
+  XX(DEVICE, -32005, "device error")
+
+typedef enum {
+#define XX(name, code, msg) PROTO_E_##name = code,
+  PROTO_ERROR_MAP(XX)
+#undef XX
+} proto_errcode_t;
+
+/* The default message of an error code, or "unknown error". */
+const char *proto_err_message(int code);
+/* The symbolic name of an error code ("INVALID_PARAMS"), or NULL. */
+const char *proto_err_name(int code);
+
+/* Limits of SPEC §3, configurable in volfxd and reported by server.info. */
+typedef struct proto_limits {
+  size_t line_bytes;     /* Longest request line, without its '\n'. */
+  uint32_t frame_side;   /* Largest width or height of a frame. */
+  uint32_t particles;    /* Most fluid particles per scene. */
+  uint32_t cloud_side;   /* Largest cloud grid side. */
+  uint32_t connections;  /* Most open connections. */
+  size_t output_bytes;   /* Most bytes queued for writing on one connection. */
+} proto_limits_t;
+
+void proto_limits_default(proto_limits_t *l);
+
+/* Attachment formats (SPEC §3). */
+typedef enum {
+  PROTO_FMT_PNG,     /* 8-bit RGBA PNG file. */
+  PROTO_FMT_RGBA8,   /* Raw 8-bit RGBA, rows top to bottom. */
+  PROTO_FMT_RGBAF32, /* Raw linear float RGBA before tone mapping, little-endian. */
+  PROTO_FMT_F32,     /* One little-endian float per pixel or element. */
+  PROTO_FMT_U8,      /* One byte per element. */
+  PROTO_FMT_COUNT
+} proto_format_t;
+
+/* "png", "rgba8", ... ; NULL for an out-of-range value. */
+const char *proto_format_name(proto_format_t f);
+/* The format named 's', or -1. */
+int proto_format_parse(const char *s);
+
+/*
+ * NDJSON reader. Bytes are fed in as they arrive; complete lines and attachment payloads are
+ * taken out in order. A line longer than 'max_line' bytes (not counting '\n') is an error that
+ * the reader reports as soon as it is certain, without buffering the rest of the line.
+ */
+typedef struct proto_reader {
+  char *buf;       /* Buffered bytes: [start, len) are unread. */
+  size_t start;    /* First unread byte. */
+  size_t len;      /* End of the buffered bytes. */
+  size_t cap;      /* Allocated size of 'buf'. */
+  size_t scanned;  /* Bytes after 'start' already known to hold no '\n'. */
+  size_t max_line; /* Line limit. */
+} proto_reader_t;
+
+enum {
+  PROTO_READ_MORE = 0,      /* Nothing complete yet: feed more bytes. */
+  PROTO_READ_OK = 1,        /* A line or payload was returned. */
+  PROTO_READ_OVERSIZE = -1, /* The pending line is over the limit; the stream is unusable. */
+  PROTO_READ_NOMEM = -2
+};
+
+void proto_reader_init(proto_reader_t *r, size_t max_line);
+void proto_reader_free(proto_reader_t *r);
+/* Appends 'n' bytes. Returns PROTO_READ_OK or PROTO_READ_NOMEM. */
+int proto_reader_feed(proto_reader_t *r, const void *data, size_t n);
+/*
+ * Takes the next line. On PROTO_READ_OK '*line' points at it inside the reader's buffer,
+ * NUL-terminated in place of the '\n' (a '\r' before it is removed too), valid until the next
+ * feed. Returns PROTO_READ_MORE, PROTO_READ_OK or PROTO_READ_OVERSIZE.
+ */
+int proto_reader_line(proto_reader_t *r, char **line, size_t *len);
+/*
+ * Takes the next 'n' raw bytes (an attachment). On PROTO_READ_OK '*data' is valid until the
+ * next feed. Returns PROTO_READ_MORE or PROTO_READ_OK.
+ */
+int proto_reader_bytes(proto_reader_t *r, size_t n, const char **data);
+/* Bytes buffered and not yet taken. */
+size_t proto_reader_pending(const proto_reader_t *r);
+
+/* 1 when 's' is well-formed UTF-8 (no overlongs, no surrogates, nothing above U+10FFFF). */
+int proto_utf8_valid(const char *s, size_t n);
+/* 1 when the JSON text nests arrays/objects no deeper than 'max_depth' (strings skipped). */
+int proto_json_depth_ok(const char *s, size_t n, int max_depth);
+
+/*
+ * Parses one message. Checks UTF-8 and nesting depth first. Returns the value or NULL with
+ * '*why' set to a static description ("invalid UTF-8", "nesting deeper than 64", "invalid
+ * JSON at byte 17" written into 'whybuf').
+ */
+cJSON *proto_parse(const char *s, size_t n, char *whybuf, size_t whylen);
+
+/* A checked JSON-RPC 2.0 request. Pointers are borrowed from the message. */
+typedef struct proto_request {
+  const cJSON *id;     /* NULL for a notification (no "id" member). */
+  const char *method;  /* Never NULL after a successful check. */
+  const cJSON *params; /* NULL when absent; otherwise an object or an array. */
+} proto_request_t;
+
+/*
+ * Checks the envelope of one request: an object with "jsonrpc": "2.0", a string "method",
+ * "params" absent or an object/array, "id" absent, null, a number or a string. Returns 0, or
+ * PROTO_E_INVALID_REQUEST with a static reason in '*why'. 'out->id' is set whenever the id is
+ * usable, even on failure, so the error can echo it.
+ */
+int proto_request_check(const cJSON *msg, proto_request_t *out, const char **why);
+
+/* Builders. Arguments marked 'taken' become part of the returned message. */
+cJSON *proto_make_request(const char *method, cJSON *params /* taken, may be NULL */, int64_t id);
+cJSON *proto_make_notification(const char *method, cJSON *params /* taken */);
+cJSON *proto_make_result(const cJSON *id /* copied; NULL means null */, cJSON *result /* taken */);
+/* An error response; 'path' (may be NULL) becomes "data": {"path": path}. */
+cJSON *proto_make_error(const cJSON *id, int code, const char *message, const char *path);
+
+/* Prints 'msg' compactly followed by '\n'. The caller frees the result with free(). */
+char *proto_print_line(const cJSON *msg, size_t *len);
+
+/* Base64 (RFC 4648, with padding). */
+size_t proto_b64_encoded_len(size_t n); /* Without the NUL. */
+/* Writes proto_b64_encoded_len(n) characters and a NUL into 'dst'. */
+void proto_b64_encode(const void *src, size_t n, char *dst);
+/* Upper bound of the decoded size of 'n' characters. */
+size_t proto_b64_decoded_max(size_t n);
+/* Decodes; returns the byte count, or -1 on a character outside the alphabet or bad padding. */
+long proto_b64_decode(const char *src, size_t n, void *dst);
+
+#endif

@@ -1,0 +1,70 @@
+/*
+ * The compiled, immutable form of a scene that the render worker reads: plain C structs in
+ * world units, made from the validated JSON document by scene.c. A render job holds its own
+ * reference, so the loop thread may replace the scene's snapshot while a frame is rendering.
+ */
+#ifndef VOLFX_RENDER_SCENE_H
+#define VOLFX_RENDER_SCENE_H
+
+#include <stdatomic.h>
+#include <stdint.h>
+
+typedef enum { SHAPE_BOX, SHAPE_SPHERE, SHAPE_TETRAHEDRON, SHAPE_PLANE, SHAPE_MESH } shape_t;
+typedef enum { TONE_NONE, TONE_REINHARD, TONE_ACES } tone_map_t;
+
+typedef struct rcamera {
+  float eye[3], target[3], up[3];
+  float fov_y; /* Degrees, vertical. */
+  float near_, far_;
+} rcamera_t;
+
+/* A triangle mesh in object space, shared between snapshots; immutable once built. */
+typedef struct mesh {
+  atomic_int refs;
+  uint32_t ntri;
+  float *tri; /* 9 floats per triangle: v0, v1, v2. */
+} mesh_t;
+
+mesh_t *mesh_ref(mesh_t *m);
+void mesh_unref(mesh_t *m);
+
+/*
+ * Shapes in object space, before scale, rotation (degrees, applied X then Y then Z) and
+ * translation: box [-0.5, 0.5]³; sphere of radius 0.5 at the origin; regular tetrahedron
+ * inscribed in the same sphere of radius 0.5, one vertex at +y; plane y = 0 (infinite, scale
+ * ignored); mesh as loaded.
+ */
+typedef struct robject {
+  shape_t shape;
+  float position[3], scale[3], rotation[3], color[3];
+  mesh_t *mesh; /* SHAPE_MESH only; a counted reference. */
+} robject_t;
+
+typedef struct render_scene {
+  atomic_int refs;
+  rcamera_t camera;
+  float background[3]; /* Linear RGB. */
+  struct {
+    float direction[3]; /* Unit, towards the light. */
+    float color[3];
+    float intensity;
+    float ambient; /* Fraction of light reaching surfaces in shadow or facing away. */
+    int shadow_map; /* Shadow map size (used by volume passes). */
+  } light;
+  robject_t *objects;
+  int nobjects;
+  float exposure; /* Stops: pixel = tone_map(linear * 2^exposure). */
+  tone_map_t tone_map;
+  uint64_t frame; /* Simulation frame and time at the snapshot. */
+  double time;
+} render_scene_t;
+
+render_scene_t *render_scene_ref(render_scene_t *s);
+/* Drops a reference; frees the scene and its mesh references with the last one. */
+void render_scene_unref(render_scene_t *s);
+
+/* Loads a Wavefront OBJ file (v and f records; polygons fanned into triangles; negative
+ * indices allowed). Returns NULL with a message naming the file and line in 'err'. */
+mesh_t *mesh_load_obj(const char *path, char *err, size_t errlen);
+
+#endif

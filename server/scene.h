@@ -1,0 +1,63 @@
+/*
+ * A named scene: its JSON document (what scene.get returns), validated against the scene
+ * schema, and the compiled snapshot the renderer reads. Every change is validated as a whole
+ * and applied atomically: on error nothing changes and the error names the offending path.
+ * Scenes live on the loop thread only; the renderer sees snapshots.
+ */
+#ifndef VOLFX_SCENE_H
+#define VOLFX_SCENE_H
+
+#include <cjson/cJSON.h>
+
+#include "render_scene.h"
+#include "schema.h"
+
+typedef struct scene {
+  char name[64];
+  cJSON *doc;                /* The validated document, defaults filled in. */
+  render_scene_t *snapshot;  /* Compiled from 'doc'; replaced on every change. */
+  unsigned long version;     /* Incremented on every change. */
+} scene_t;
+
+typedef struct scene_error {
+  int code;          /* PROTO_E_INVALID_PARAMS, PROTO_E_NOT_FOUND or PROTO_E_LIMIT. */
+  char path[256];    /* Offending dotted path, "" when none. */
+  char message[256];
+} scene_error_t;
+
+/* The schema of a whole scene document (SPEC §4), for validation and rpc.discover. */
+extern const sch_field_t scene_schema;
+
+/* Sets the directory relative to which mesh files are resolved (the data directory). Paths
+ * that would leave it are refused. NULL refuses every mesh file. */
+void scene_set_data_dir(const char *dir);
+
+/*
+ * Creates a scene from 'preset' (a document, possibly partial; NULL for all defaults).
+ * Returns NULL with 'err' set when the preset does not validate.
+ */
+scene_t *scene_create(const char *name, const cJSON *preset, scene_error_t *err);
+void scene_destroy(scene_t *s);
+
+/* A copy of the document, or of the sub-tree at dotted 'path' (NULL or "" for all). NULL with
+ * err->code PROTO_E_NOT_FOUND when the path does not exist. */
+cJSON *scene_get(const scene_t *s, const char *path, scene_error_t *err);
+
+/* Applies an RFC 7386 merge patch (arrays replaced whole). Returns 0 or -1 with 'err'. */
+int scene_patch(scene_t *s, const cJSON *patch, scene_error_t *err);
+/* Sets one value at a dotted path ("objects.0.color", "camera.fov_y"). The parent must exist;
+ * an array index may be the array's length to append. Returns 0 or -1 with 'err'. */
+int scene_set_path(scene_t *s, const char *path, const cJSON *value, scene_error_t *err);
+
+/* Replaces the whole document (scene.load). Returns 0 or -1 with 'err'. */
+int scene_replace(scene_t *s, const cJSON *doc, scene_error_t *err);
+
+/* Advances the clock: sim.time += steps * dt, sim.frame += steps. */
+void scene_advance(scene_t *s, unsigned steps, double dt);
+
+/* Convenience reads of the validated document. */
+double scene_dt(const scene_t *s);
+double scene_time(const scene_t *s);
+double scene_frame(const scene_t *s);
+
+#endif

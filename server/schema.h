@@ -1,0 +1,70 @@
+/*
+ * Field descriptions: one static tree per method's params and one for the scene document.
+ * The same tree validates a JSON value (types, ranges, finiteness, unknown members), fills in
+ * defaults, and is published as JSON Schema by rpc.discover, so checks and docs never drift.
+ */
+#ifndef VOLFX_SCHEMA_H
+#define VOLFX_SCHEMA_H
+
+#include <cjson/cJSON.h>
+
+typedef enum {
+  SCH_NUMBER,  /* Finite double within [min, max]. */
+  SCH_INTEGER, /* Integral double within [min, max]. */
+  SCH_BOOL,
+  SCH_STRING, /* UTF-8 string of at most 'max' bytes (0: no limit but the line). */
+  SCH_ENUM,   /* One of 'enum_values'. */
+  SCH_VEC3,   /* Array of three finite numbers, each within [min, max]. */
+  SCH_OBJECT, /* Object with the members in 'fields'; unknown members are refused. */
+  SCH_ARRAY,  /* Array of at most 'max' items, each described by 'items'. */
+  SCH_ANY     /* Any JSON value; the handler checks it. */
+} sch_type_t;
+
+enum {
+  SCH_REQUIRED = 1 << 0,   /* Must be present (no default is filled). */
+  SCH_UNIT_VEC = 1 << 1,   /* VEC3 normalised to length 1; a zero vector is refused. */
+  SCH_POSITIVE = 1 << 2,   /* Number must be > min rather than >= min. */
+  SCH_NO_DEFAULT = 1 << 3, /* Optional, and left absent when absent. */
+  SCH_OPEN = 1 << 4        /* OBJECT that also accepts members it does not describe. */
+};
+
+typedef struct sch_field {
+  const char *name; /* Member name; NULL ends a 'fields' list. */
+  sch_type_t type;
+  const char *desc; /* One sentence for the docs. */
+  const char *unit; /* "degrees", "world units", "seconds", ... or NULL. */
+  double min, max;  /* Range (numbers, vec3 components); max length/items for strings/arrays. */
+  double def;       /* Default for NUMBER, INTEGER, BOOL (0/1). */
+  const double *def_vec;          /* Default for VEC3. */
+  const char *def_str;            /* Default for STRING and ENUM. */
+  const char *const *enum_values; /* NULL-terminated list for ENUM. */
+  const struct sch_field *fields; /* Members of an OBJECT. */
+  const struct sch_field *items;  /* Item of an ARRAY. */
+  unsigned flags;
+} sch_field_t;
+
+typedef struct sch_error {
+  char path[256];    /* Dotted path of the offending value ("objects.2.scale"). */
+  char message[256]; /* What was wrong, naming the path. */
+} sch_error_t;
+
+/*
+ * Validates 'v' against 'f' in place: fills absent members that have defaults, normalises unit
+ * vectors. 'prefix' is the dotted path of 'v' ("" at the root). Returns 0, or -1 with 'err'
+ * naming the first offending path.
+ */
+int sch_validate(const sch_field_t *f, cJSON *v, const char *prefix, sch_error_t *err);
+
+/* The JSON Schema (draft 2020-12 subset) of 'f', with "default", "minimum", "maximum",
+ * "description" and the unit in "x-unit". The caller owns the result. */
+cJSON *sch_to_json_schema(const sch_field_t *f);
+
+/* A document holding every default of 'f' (an OBJECT). The caller owns the result. */
+cJSON *sch_defaults(const sch_field_t *f);
+
+/* Follows a dotted path ("waves.0.a") inside 'root'; NULL if absent. Array indices are decimal. */
+cJSON *sch_path_get(cJSON *root, const char *path);
+/* The field description at a dotted path, or NULL. */
+const sch_field_t *sch_path_field(const sch_field_t *root, const char *path);
+
+#endif
