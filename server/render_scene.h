@@ -55,6 +55,7 @@ typedef struct render_scene {
   int nobjects;
   float exposure; /* Stops: pixel = tone_map(linear * 2^exposure). */
   tone_map_t tone_map;
+  int transparent_background; /* Background pixels get alpha 0 instead of 1. */
   uint64_t frame; /* Simulation frame and time at the snapshot. */
   double time;
 } render_scene_t;
