@@ -1,0 +1,149 @@
+/*
+ * libvolfx: a small blocking client for volfxd. It opens one connection (TCP or a Unix
+ * socket), sends JSON-RPC 2.0 requests one at a time and waits for each response, reading the
+ * raw attachment bytes that follow a response line. Notifications ("frames", "job.progress")
+ * that arrive while a response is awaited are kept in a bounded queue and handed out later by
+ * volfx_next_notification() and volfx_next_frame(). The wire contract is docs/protocol.md.
+ *
+ * A connection is not thread-safe: use it from one thread at a time. Functions return 0 on
+ * success, a JSON-RPC error code (-32700 ... -32000) when the server answered with an error, or
+ * one of the small negative VOLFX_E_* transport codes below.
+ */
+#ifndef VOLFX_H
+#define VOLFX_H
+
+#include <stddef.h>
+#include <stdint.h>
+
+#include <cjson/cJSON.h>
+
+#define VOLFX_DEFAULT_HOST "127.0.0.1"
+#define VOLFX_DEFAULT_PORT 7878
+
+/* Transport and usage errors. JSON-RPC codes are all below -32000, so these never collide. */
+#define VOLFX_ERRNO_MAP(XX)                                                                        \
+  XX(INVAL, -1, "invalid argument")                                                                \
+  XX(NOMEM, -2, "out of memory")                                                                   \
+  XX(CONNECT, -3, "cannot connect")                                                                \
+  XX(IO, -4, "i/o error")                                                                          \
+  XX(CLOSED, -5, "connection closed by the server")                                                \
+  XX(TIMEOUT, -6, "timed out")                                                                     \
+  XX(PROTOCOL, -7, "malformed message from the server")                                            \
+  XX(INTR, -8, "interrupted")
+
+typedef enum {
+#define XX(name, code, msg) VOLFX_E_##name = code,
+  VOLFX_ERRNO_MAP(XX)
+#undef XX
+} volfx_errno_t;
+
+/* An open connection; created by volfx_connect_tcp()/volfx_connect_unix(). */
+typedef struct volfx_conn volfx_conn_t;
+
+/*
+ * Binary data that came with a result or a notification. 'data' is NULL and 'len' 0 when
+ * there was none. The caller owns 'data' and releases it with volfx_attachment_free().
+ */
+typedef struct volfx_attachment {
+  unsigned char *data; /* The bytes, malloc'd; NULL when empty. */
+  size_t len;          /* Number of bytes in 'data'. */
+  char format[16];     /* "png", "rgba8", "rgbaf32", "f32", "u8"; "" when absent. */
+  int width;           /* attachment.width, or 0 when absent. */
+  int height;          /* attachment.height, or 0 when absent. */
+} volfx_attachment_t;
+
+/*
+ * The error a call ended with. For a server error 'code' is the JSON-RPC code, 'message' the
+ * server's message and 'path' its data.path ("" when absent); for a transport error 'code' is
+ * a VOLFX_E_* value and 'message' describes it. Truncated to fit, always NUL-terminated.
+ */
+typedef struct volfx_error {
+  int code;
+  char message[512];
+  char path[256];
+} volfx_error_t;
+
+/*
+ * Connects to 'host' (NULL means VOLFX_DEFAULT_HOST; names are resolved) on 'port' (0 means
+ * VOLFX_DEFAULT_PORT). 'timeout_ms' bounds the connect and becomes the connection's I/O
+ * timeout (volfx_set_timeout); 0 or less means no timeout. On success '*out' is a new
+ * connection owned by the caller, to be released with volfx_close(). Returns 0 or a VOLFX_E_*
+ * code; 'err' (may be NULL) receives a description.
+ */
+int volfx_connect_tcp(volfx_conn_t **out, const char *host, int port, int timeout_ms,
+                      volfx_error_t *err);
+
+/* Like volfx_connect_tcp() for the Unix socket at 'path'. */
+int volfx_connect_unix(volfx_conn_t **out, const char *path, int timeout_ms, volfx_error_t *err);
+
+/*
+ * Sets the time one volfx_call() may take in all, sending and receiving; 0 or less waits
+ * forever. A call that times out leaves the connection unusable, since a late response would
+ * be taken for the next one: close it.
+ */
+void volfx_set_timeout(volfx_conn_t *conn, int timeout_ms);
+
+/*
+ * Sends one request and waits for its response.
+ * - 'method': the method name, e.g. "scene.get".
+ * - 'params': an object or array, or NULL for none. It is taken: freed by this call whatever
+ *   it returns.
+ * - 'result' (may be NULL): on success '*result' is the "result" member, owned by the caller
+ *   (cJSON_Delete). When the result carried an attachment whose bytes came inline as base64,
+ *   the "data" member is removed from it after decoding into 'att'. Set to NULL on failure.
+ * - 'att' (may be NULL): receives the attachment, owned by the caller; emptied first. With
+ *   'att' NULL any attachment is read off the socket and dropped.
+ * - 'err' (may be NULL): filled in when the return value is not 0.
+ * Notifications that arrive before the response are queued for volfx_next_notification().
+ * Returns 0, the server's JSON-RPC error code, or a VOLFX_E_* transport code.
+ */
+int volfx_call(volfx_conn_t *conn, const char *method, cJSON *params, cJSON **result,
+               volfx_attachment_t *att, volfx_error_t *err);
+
+/* Sends "auth" with 'token'. Returns 0, -32001 for a wrong token, or another code as volfx_call. */
+int volfx_auth(volfx_conn_t *conn, const char *token, volfx_error_t *err);
+
+/*
+ * Calls "frames.subscribe" with 'params' (taken, may be NULL for all defaults) and stores the
+ * subscription id in '*id'. Frames then arrive through volfx_next_frame(). Returns as
+ * volfx_call.
+ */
+int volfx_subscribe(volfx_conn_t *conn, cJSON *params, int64_t *id, volfx_error_t *err);
+
+/*
+ * Calls "frames.unsubscribe" for 'id'. '*result' (when 'result' is not NULL) receives
+ * {"id", "sent", "dropped"}, owned by the caller. Frames of that subscription still queued
+ * are discarded. Returns as volfx_call.
+ */
+int volfx_unsubscribe(volfx_conn_t *conn, int64_t id, cJSON **result, volfx_error_t *err);
+
+/*
+ * Waits up to 'timeout_ms' (negative: forever, 0: only what is already buffered) for the next
+ * notification whose method is 'method' (NULL: any method); notifications of other methods
+ * stay queued. '*msg' receives the whole notification object ({"jsonrpc", "method",
+ * "params"}), owned by the caller; 'att' (may be NULL) its attachment. Returns 0,
+ * VOLFX_E_TIMEOUT, VOLFX_E_INTR when a signal interrupted the wait, or a transport code.
+ */
+int volfx_next_notification(volfx_conn_t *conn, const char *method, int timeout_ms, cJSON **msg,
+                            volfx_attachment_t *att);
+
+/*
+ * volfx_next_notification() for "frames": '*params' receives the notification's params
+ * ({"id", "frame", "time", "work_ms", "dropped", ...}), owned by the caller, and 'att' the
+ * frame. Returns as volfx_next_notification().
+ */
+int volfx_next_frame(volfx_conn_t *conn, int timeout_ms, cJSON **params, volfx_attachment_t *att);
+
+/* Notifications dropped from the full local queue so far (the oldest go first). */
+uint64_t volfx_queue_dropped(const volfx_conn_t *conn);
+
+/* Closes the socket and frees 'conn' with everything queued. NULL is allowed. */
+void volfx_close(volfx_conn_t *conn);
+
+/* Frees the bytes of 'att' and empties it. NULL is allowed. */
+void volfx_attachment_free(volfx_attachment_t *att);
+
+/* The description of a VOLFX_E_* or JSON-RPC code; "unknown error" otherwise. */
+const char *volfx_strerror(int code);
+
+#endif

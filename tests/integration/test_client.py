@@ -1,0 +1,281 @@
+#!/usr/bin/env python3
+"""Integration test of the clients: starts a real volfxd on a free port and drives it with the
+C CLI (bin/volfx) and the Python client (client/python/volfx.py).
+
+Run from the repository root: python3 tests/integration/test_client.py --bin build/bin
+Exits 0 when every check passed; prints the first failure and exits 1 otherwise. A watchdog
+kills everything after TOTAL_TIMEOUT seconds so the test never hangs.
+"""
+
+import argparse
+import importlib.util
+import json
+import os
+import re
+import struct
+import subprocess
+import sys
+import tempfile
+import threading
+import time
+
+TOTAL_TIMEOUT = 300  # seconds for the whole test
+CALL_TIMEOUT = 120   # seconds for one CLI invocation
+PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
+
+ROOT = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+
+
+class Failure(Exception):
+    pass
+
+
+def check(cond, what):
+    if not cond:
+        raise Failure(what)
+
+
+def png_size(data):
+    """(width, height) from a PNG's IHDR, after checking the signature and the chunk."""
+    check(data[:8] == PNG_SIGNATURE, "not a PNG: starts with %r" % data[:8])
+    check(len(data) >= 33, "PNG too short (%d bytes)" % len(data))
+    length, kind = struct.unpack(">I4s", data[8:16])
+    check(kind == b"IHDR" and length == 13, "first PNG chunk is %r/%d, not IHDR/13" % (kind, length))
+    return struct.unpack(">II", data[16:24])
+
+
+class Server:
+    """A volfxd child process on 127.0.0.1 with a free port and a temporary data directory."""
+
+    def __init__(self, bindir, datadir):
+        self.log_path = os.path.join(datadir, "..", "volfxd.log")
+        self.log = open(self.log_path, "wb")
+        self.proc = subprocess.Popen(
+            [os.path.join(bindir, "volfxd"), "--listen", "127.0.0.1:0", "--data", datadir],
+            stdout=subprocess.PIPE, stderr=self.log, cwd=ROOT)
+        self.port = None
+        found = threading.Event()
+
+        def reader():
+            # Parses the "listening" line, then keeps draining stdout so the server never
+            # blocks on a full pipe.
+            for raw in self.proc.stdout:
+                line = raw.decode("utf-8", "replace").strip()
+                m = re.match(r"volfxd listening on (\S+):(\d+)$", line)
+                if m and self.port is None:
+                    self.port = int(m.group(2))
+                    found.set()
+            found.set()
+
+        threading.Thread(target=reader, daemon=True).start()
+        found.wait(60)
+        if self.port is None:
+            self.stop()
+            raise Failure("volfxd did not print 'volfxd listening on HOST:PORT' (log: %s)"
+                          % self.tail())
+
+    def tail(self):
+        try:
+            with open(self.log_path, "rb") as f:
+                return f.read()[-2000:].decode("utf-8", "replace")
+        except OSError:
+            return ""
+
+    def stop(self):
+        if self.proc.poll() is None:
+            self.proc.kill()
+            self.proc.wait()
+
+
+class Cli:
+    """Runs bin/volfx against the server."""
+
+    def __init__(self, bindir, port, workdir):
+        self.exe = os.path.join(bindir, "volfx")
+        self.port = port
+        self.workdir = workdir
+
+    def run(self, *args, ok=True):
+        cmd = [self.exe, "--port", str(self.port)] + list(args)
+        p = subprocess.run(cmd, capture_output=True, timeout=CALL_TIMEOUT, cwd=self.workdir)
+        out = p.stdout.decode("utf-8", "replace")
+        err = p.stderr.decode("utf-8", "replace")
+        if ok:
+            check(p.returncode == 0, "`volfx %s` exited %d: %s" % (" ".join(args), p.returncode,
+                                                                  err.strip()))
+        return p.returncode, out, err
+
+    def json(self, *args):
+        _, out, _ = self.run(*args)
+        try:
+            return json.loads(out)
+        except ValueError:
+            raise Failure("`volfx %s` printed no JSON: %r" % (" ".join(args), out[:300]))
+
+
+def test_cli(cli, work):
+    info = cli.json("info")
+    check(info.get("name") == "volfxd", "info.name is %r" % info.get("name"))
+    check(info.get("protocol") == "1", "info.protocol is %r" % info.get("protocol"))
+    check("merge patch" in cli.run("--help")[1], "--help does not document the set rule")
+
+    fov = cli.json("get", "camera.fov_y")
+    check(isinstance(fov, (int, float)), "get camera.fov_y printed %r" % fov)
+    cli.run("set", "camera.fov_y=50")
+    check(cli.json("get", "camera.fov_y") == 50, "fov_y is not 50 after set")
+
+    # A bad value fails, names the path, and changes nothing, not even the good assignment
+    # beside it in the same merge patch.
+    far = cli.json("get", "camera.far")
+    rc, _, err = cli.run("set", "camera.far=%s" % json.dumps(far + 1), "camera.fov_y=500",
+                         ok=False)
+    check(rc != 0, "set camera.fov_y=500 exited 0")
+    check("camera.fov_y" in err, "the error does not name camera.fov_y: %r" % err)
+    check(err.startswith("volfx: "), "the error is not prefixed 'volfx: ': %r" % err)
+    check(cli.json("get", "camera.fov_y") == 50, "a failed set changed fov_y")
+    check(cli.json("get", "camera.far") == far, "a failed set applied part of its patch")
+
+    rc, _, err = cli.run("get", "camera.no_such_member", ok=False)
+    check(rc != 0 and "not found" in err, "get of an unknown path: rc %d, %r" % (rc, err))
+    rc, _, err = cli.run("frobnicate", ok=False)
+    check(rc == 2, "an unknown command exited %d, not 2" % rc)
+
+    frame0 = cli.json("get", "sim.frame")
+    r = cli.json("step", "3")
+    check(r.get("frame") == frame0 + 3, "step 3 from frame %r gave %r" % (frame0, r))
+
+    _, out, _ = cli.run("render", "-o", "x.png", "-W", "64", "-H", "48")
+    with open(os.path.join(work, "x.png"), "rb") as f:
+        check(png_size(f.read()) == (64, 48), "x.png is not 64x48")
+    check("work_ms" in out and len(out.strip().splitlines()) == 1,
+          "render summary is not one line with work_ms: %r" % out)
+
+    cli.run("render", "-o", "d.f32", "--format", "f32", "--aov", "depth", "-W", "32", "-H", "16")
+    size = os.path.getsize(os.path.join(work, "d.f32"))
+    check(size == 4 * 32 * 16, "depth f32 is %d bytes, not %d" % (size, 4 * 32 * 16))
+
+    _, out, _ = cli.run("watch", "--count", "3", "--fps", "20", "-W", "32", "-H", "32",
+                        "-o", "w_%06d.png")
+    m = re.search(r"received (\d+) frames, dropped (\d+)", out)
+    check(m is not None and m.group(1) == "3", "watch summary: %r" % out)
+    frames = sorted(f for f in os.listdir(work) if re.match(r"w_\d{6}\.png$", f))
+    check(len(frames) >= 1, "watch -o wrote no files")
+    with open(os.path.join(work, frames[0]), "rb") as f:
+        check(png_size(f.read()) == (32, 32), "watched frame is not 32x32")
+
+    script = os.path.join(work, "good.volfx")
+    with open(script, "w") as f:
+        f.write("# a comment, then a blank line\n\n"
+                "set camera.fov_y=55\n"
+                "get camera.fov_y\n"
+                "step 2   # trailing comment\n"
+                "render -o s.png -W 16 -H 8\n"
+                "set --patch '{\"camera\": {\"fov_y\": 45}}'\n"
+                "scenes\n")
+    cli.run("script", script)
+    with open(os.path.join(work, "s.png"), "rb") as f:
+        check(png_size(f.read()) == (16, 8), "script render is not 16x8")
+    check(cli.json("get", "camera.fov_y") == 45, "script's last set did not apply")
+
+    frame1 = cli.json("get", "sim.frame")
+    bad = os.path.join(work, "bad.volfx")
+    with open(bad, "w") as f:
+        f.write("info\n# comment\nset camera.fov_y=999\nstep 1\n")
+    rc, _, err = cli.run("script", bad, ok=False)
+    check(rc != 0, "a script with a bad line exited 0")
+    check(":3:" in err and "camera.fov_y" in err, "the error lacks line 3 or the path: %r" % err)
+    check(cli.json("get", "sim.frame") == frame1, "the script went on after its failing line")
+
+
+def test_python(port):
+    spec = importlib.util.spec_from_file_location(
+        "volfx", os.path.join(ROOT, "client", "python", "volfx.py"))
+    volfx = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(volfx)
+
+    with volfx.Client("127.0.0.1", port, timeout=60) as c:
+        check(c.info()["name"] == "volfxd", "python info")
+        result, data = c.render(40, 20)
+        check(png_size(data) == (40, 20), "python render is not 40x20")
+        check(result.get("width") == 40 and "work_ms" in result, "python render result %r" % result)
+        _, data = c.render(8, 8, encoding="base64")
+        check(png_size(data) == (8, 8), "python base64 render is not an 8x8 PNG")
+
+        sid = c.subscribe(width=16, height=16, fps=20)
+        got = list(c.frames(count=3, timeout=30))
+        check(len(got) == 3, "python received %d frames, not 3" % len(got))
+        for params, data in got:
+            check(params.get("id") == sid, "frame of subscription %r" % params.get("id"))
+            check(png_size(data) == (16, 16), "python frame is not 16x16")
+        r = c.unsubscribe(sid)
+        check(r.get("id") == sid and r.get("sent", 0) >= 3, "unsubscribe result %r" % r)
+
+        before = c.get("camera.fov_y")
+        try:
+            c.set(path="camera.fov_y", value=500)
+            raise Failure("set camera.fov_y=500 did not raise")
+        except volfx.VolfxError as e:
+            check(e.code == -32602, "error code %r, not -32602" % e.code)
+            check(e.path == "camera.fov_y", "error path %r" % e.path)
+        check(c.get("camera.fov_y") == before, "a refused set changed fov_y")
+        c.patch({"camera": {"fov_y": 42}})
+        check(c.get("camera.fov_y") == 42, "patch did not apply")
+
+    out = subprocess.run([sys.executable, os.path.join(ROOT, "client", "python", "volfx.py"),
+                          "--port", str(port), "get", "camera.fov_y"],
+                         capture_output=True, timeout=CALL_TIMEOUT)
+    check(out.returncode == 0 and json.loads(out.stdout) == 42,
+          "volfx.py get: %r %r" % (out.stdout, out.stderr))
+
+
+def main():
+    ap = argparse.ArgumentParser()
+    ap.add_argument("--bin", required=True, help="directory holding volfxd and volfx")
+    a = ap.parse_args()
+    bindir = os.path.abspath(a.bin)
+
+    tmp = tempfile.TemporaryDirectory(prefix="volfx-client-test-")
+    data = os.path.join(tmp.name, "data")
+    work = os.path.join(tmp.name, "work")
+    os.mkdir(data)
+    os.mkdir(work)
+    server = None
+
+    def watchdog():
+        print("FAIL: test_client timed out after %d s" % TOTAL_TIMEOUT, flush=True)
+        if server is not None:
+            server.stop()
+        os._exit(1)
+
+    timer = threading.Timer(TOTAL_TIMEOUT, watchdog)
+    timer.daemon = True
+    timer.start()
+    status = 1
+    try:
+        server = Server(bindir, data)
+        cli = Cli(bindir, server.port, work)
+        test_cli(cli, work)
+        test_python(server.port)
+        _, out, _ = cli.run("shutdown")
+        check(json.loads(out).get("shutting_down") is True, "shutdown result %r" % out)
+        try:
+            rc = server.proc.wait(30)
+        except subprocess.TimeoutExpired:
+            raise Failure("volfxd did not exit within 30 s of shutdown")
+        check(rc == 0, "volfxd exited %d after shutdown" % rc)
+        print("ok: test_client")
+        status = 0
+    except Failure as e:
+        print("FAIL: %s" % e)
+        if server is not None:
+            print("--- volfxd log (tail) ---\n%s" % server.tail())
+    finally:
+        timer.cancel()
+        if server is not None:
+            server.stop()
+        tmp.cleanup()
+    return status
+
+
+if __name__ == "__main__":
+    sys.exit(main())
