@@ -17,16 +17,16 @@
 #define PROTO_MAX_DEPTH 64 /* Deepest JSON nesting accepted in one message. */
 
 /* Error codes of SPEC §3: JSON-RPC's own, then volfx's. */
-#define PROTO_ERROR_MAP(XX)                                                                    \
-  XX(PARSE, -32700, "parse error")                                                             \
-  XX(INVALID_REQUEST, -32600, "invalid request")                                               \
-  XX(METHOD_NOT_FOUND, -32601, "method not found")                                             \
-  XX(INVALID_PARAMS, -32602, "invalid params")                                                 \
-  XX(INTERNAL, -32603, "internal error")                                                       \
-  XX(UNAUTHORIZED, -32001, "unauthorized")                                                     \
-  XX(BUSY, -32002, "busy")                                                                     \
-  XX(LIMIT, -32003, "limit exceeded")                                                          \
-  XX(NOT_FOUND, -32004, "not found")                                                           \
+#define PROTO_ERROR_MAP(XX)                                                                        \
+  XX(PARSE, -32700, "parse error")                                                                 \
+  XX(INVALID_REQUEST, -32600, "invalid request")                                                   \
+  XX(METHOD_NOT_FOUND, -32601, "method not found")                                                 \
+  XX(INVALID_PARAMS, -32602, "invalid params")                                                     \
+  XX(INTERNAL, -32603, "internal error")                                                           \
+  XX(UNAUTHORIZED, -32001, "unauthorized")                                                         \
+  XX(BUSY, -32002, "busy")                                                                         \
+  XX(LIMIT, -32003, "limit exceeded")                                                              \
+  XX(NOT_FOUND, -32004, "not found")                                                               \
   XX(DEVICE, -32005, "device error")
 
 typedef enum {
@@ -42,12 +42,12 @@ const char *proto_err_name(int code);
 
 /* Limits of SPEC §3, configurable in volfxd and reported by server.info. */
 typedef struct proto_limits {
-  size_t line_bytes;     /* Longest request line, without its '\n'. */
-  uint32_t frame_side;   /* Largest width or height of a frame. */
-  uint32_t particles;    /* Most fluid particles per scene. */
-  uint32_t cloud_side;   /* Largest cloud grid side. */
-  uint32_t connections;  /* Most open connections. */
-  size_t output_bytes;   /* Most bytes queued for writing on one connection. */
+  size_t line_bytes;    /* Longest request line, without its '\n'. */
+  uint32_t frame_side;  /* Largest width or height of a frame. */
+  uint32_t particles;   /* Most fluid particles per scene. */
+  uint32_t cloud_side;  /* Largest cloud grid side. */
+  uint32_t connections; /* Most open connections. */
+  size_t output_bytes;  /* Most bytes queued for writing on one connection. */
 } proto_limits_t;
 
 void proto_limits_default(proto_limits_t *l);

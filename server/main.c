@@ -1,1 +1,126 @@
-int main(void) { return 0; }
+/*
+ * volfxd: reads the configuration, brings up the OpenCL renderer (warming every kernel), the
+ * render worker and the 'main' scene, listens, prints "volfxd listening on HOST:PORT" once
+ * connections are accepted, and runs the libuv loop until a signal or server.shutdown.
+ */
+#include <errno.h>
+#include <signal.h>
+#include <stdio.h>
+#include <stdlib.h>
+#include <string.h>
+#include <sys/stat.h>
+
+#include "log.h"
+#include "server.h"
+#include "worker.h"
+
+static void on_signal(uv_signal_t *h, int signum) {
+  server_t *s = h->data;
+  LOG(LOG_INFO, "server", "signal %d", signum);
+  server_request_stop(s);
+}
+
+static void close_any(uv_handle_t *h, void *arg) {
+  (void)arg;
+  if (!uv_is_closing(h))
+    uv_close(h, NULL);
+}
+
+/* Prints the address clients should use, with the port the kernel picked for port 0. */
+static void announce(server_t *s) {
+  if (s->has_tcp) {
+    struct sockaddr_storage addr;
+    int len = sizeof addr;
+    char host[64] = "?";
+    int port = 0;
+    uv_tcp_getsockname(&s->tcp, (struct sockaddr *)&addr, &len);
+    if (addr.ss_family == AF_INET6) {
+      uv_ip6_name((struct sockaddr_in6 *)&addr, host, sizeof host);
+      port = ntohs(((struct sockaddr_in6 *)&addr)->sin6_port);
+    } else {
+      uv_ip4_name((struct sockaddr_in *)&addr, host, sizeof host);
+      port = ntohs(((struct sockaddr_in *)&addr)->sin_port);
+    }
+    printf("volfxd listening on %s:%d\n", host, port);
+  } else {
+    printf("volfxd listening on unix:%s\n", s->cfg.unix_path);
+  }
+  fflush(stdout);
+}
+
+int main(int argc, char **argv) {
+  static server_t srv;
+  server_t *s = &srv;
+  int rc = config_load(&s->cfg, argc, argv);
+  if (rc != CONFIG_OK)
+    return rc == CONFIG_EXIT_OK ? 0 : 2;
+  log_threshold = (log_level_t)s->cfg.log_level;
+  signal(SIGPIPE, SIG_IGN);
+
+  if (s->cfg.data_dir[0]) {
+    if (mkdir(s->cfg.data_dir, 0700) != 0 && errno != EEXIST) {
+      LOG(LOG_ERROR, "server", "cannot create data directory %s: %s", s->cfg.data_dir,
+          strerror(errno));
+      return 1;
+    }
+    char *real = realpath(s->cfg.data_dir, NULL);
+    if (real) {
+      snprintf(s->cfg.data_dir, sizeof s->cfg.data_dir, "%s", real);
+      free(real);
+    }
+  }
+  scene_set_data_dir(s->cfg.data_dir[0] ? s->cfg.data_dir : NULL);
+
+  uint64_t t0 = now_ns();
+  renderer_opts_t ropts = {.device = s->cfg.device[0] ? s->cfg.device : NULL,
+                           .kernels_dir = s->cfg.kernels_dir[0] ? s->cfg.kernels_dir : NULL};
+  renderer_t *renderer = NULL;
+  char err[8192];
+  if (renderer_create(&ropts, &renderer, err, sizeof err) != 0) {
+    LOG(LOG_ERROR, "opencl", "%s", err);
+    return 1;
+  }
+  snprintf(s->platform, sizeof s->platform, "%s", renderer_platform_name(renderer));
+  snprintf(s->device, sizeof s->device, "%s", renderer_device_name(renderer));
+  LOG(LOG_INFO, "opencl", "%s / %s ready in %.0f ms", s->platform, s->device,
+      (double)(now_ns() - t0) / 1e6);
+
+  s->loop = uv_default_loop();
+  stats_init(&s->stats, now_ns());
+  s->worker = worker_start(s->loop, renderer, s->cfg.render_queue);
+  if (!s->worker) {
+    renderer_destroy(renderer);
+    return 1;
+  }
+
+  scene_error_t serr = {0};
+  if (!server_add_scene(s, "main", s->cfg.scene[0] ? s->cfg.scene : NULL, &serr)) {
+    LOG(LOG_ERROR, "scene", "cannot load the main scene: %s%s%s", serr.message,
+        serr.path[0] ? " at " : "", serr.path);
+    server_request_stop(s);
+    uv_run(s->loop, UV_RUN_DEFAULT);
+    uv_loop_close(s->loop);
+    return 1;
+  }
+
+  uv_signal_init(s->loop, &s->sigint);
+  uv_signal_init(s->loop, &s->sigterm);
+  s->sigint.data = s->sigterm.data = s;
+  uv_signal_start(&s->sigint, on_signal, SIGINT);
+  uv_signal_start(&s->sigterm, on_signal, SIGTERM);
+
+  int exit_code = 0;
+  if (net_listen(s) != 0) {
+    exit_code = 1;
+    server_request_stop(s);
+  } else {
+    announce(s);
+  }
+  uv_run(s->loop, UV_RUN_DEFAULT);
+  /* Whatever is left (an unreferenced timer) is closed so the loop can be freed. */
+  uv_walk(s->loop, close_any, NULL);
+  uv_run(s->loop, UV_RUN_DEFAULT);
+  uv_loop_close(s->loop);
+  LOG(LOG_INFO, "server", "stopped");
+  return exit_code;
+}

@@ -15,8 +15,9 @@
 typedef struct renderer renderer_t;
 
 typedef struct renderer_opts {
-  const char *device;      /* "cpu", "gpu", a device index ("0", "1", ...) or NULL for the default. */
-  const char *kernels_dir; /* Load kernels/*.cl from here instead of the embedded copies; or NULL. */
+  const char *device; /* "cpu", "gpu", a device index ("0", "1", ...) or NULL for the default. */
+  const char
+      *kernels_dir; /* Load the kernel sources from here instead of the embedded copies; or NULL. */
 } renderer_opts_t;
 
 /* Layers a render may pick (SPEC §3 'layers'). */
@@ -35,8 +36,8 @@ typedef struct render_params {
   uint32_t width, height;
   proto_format_t format; /* BEAUTY: PNG, RGBA8, RGBAF32. DEPTH, WAVE_H: F32. */
   aov_t aov;
-  unsigned layers;       /* LAYER_* bits. */
-  int png_level;         /* zlib level 0-9 for PNG; -1 picks the fast default. */
+  unsigned layers;         /* LAYER_* bits. */
+  int png_level;           /* zlib level 0-9 for PNG; -1 picks the fast default. */
   const rcamera_t *camera; /* Overrides the scene's camera when not NULL. */
 } render_params_t;
 
@@ -72,7 +73,7 @@ int renderer_render(renderer_t *r, const render_scene_t *scene, const render_par
                     render_output_t *out, char *err, size_t errlen);
 
 /* Encodes 8-bit RGBA rows as a PNG; 'level' -1 is the fast default (zlib 1, no filter). */
-int encode_png(const uint8_t *rgba, uint32_t width, uint32_t height, int level,
-               unsigned char **out, size_t *nout);
+int encode_png(const uint8_t *rgba, uint32_t width, uint32_t height, int level, unsigned char **out,
+               size_t *nout);
 
 #endif

@@ -48,7 +48,7 @@ typedef struct render_scene {
     float direction[3]; /* Unit, towards the light. */
     float color[3];
     float intensity;
-    float ambient; /* Fraction of light reaching surfaces in shadow or facing away. */
+    float ambient;  /* Fraction of light reaching surfaces in shadow or facing away. */
     int shadow_map; /* Shadow map size (used by volume passes). */
   } light;
   robject_t *objects;
@@ -56,7 +56,7 @@ typedef struct render_scene {
   float exposure; /* Stops: pixel = tone_map(linear * 2^exposure). */
   tone_map_t tone_map;
   int transparent_background; /* Background pixels get alpha 0 instead of 1. */
-  uint64_t frame; /* Simulation frame and time at the snapshot. */
+  uint64_t frame;             /* Simulation frame and time at the snapshot. */
   double time;
 } render_scene_t;
 

@@ -14,14 +14,14 @@
 
 typedef struct scene {
   char name[64];
-  cJSON *doc;                /* The validated document, defaults filled in. */
-  render_scene_t *snapshot;  /* Compiled from 'doc'; replaced on every change. */
-  unsigned long version;     /* Incremented on every change. */
+  cJSON *doc;               /* The validated document, defaults filled in. */
+  render_scene_t *snapshot; /* Compiled from 'doc'; replaced on every change. */
+  unsigned long version;    /* Incremented on every change. */
 } scene_t;
 
 typedef struct scene_error {
-  int code;          /* PROTO_E_INVALID_PARAMS, PROTO_E_NOT_FOUND or PROTO_E_LIMIT. */
-  char path[256];    /* Offending dotted path, "" when none. */
+  int code;       /* PROTO_E_INVALID_PARAMS, PROTO_E_NOT_FOUND or PROTO_E_LIMIT. */
+  char path[256]; /* Offending dotted path, "" when none. */
   char message[256];
 } scene_error_t;
 

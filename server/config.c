@@ -1,0 +1,351 @@
+/*
+ * Command line and config file parsing for volfxd. The config file is a JSON object whose
+ * members have the long option names ("listen", "data", "token", "idle_timeout", ...) plus a
+ * "limits" object; the command line overrides it.
+ */
+#include "config.h"
+
+#include <errno.h>
+#include <getopt.h>
+#include <stdio.h>
+#include <stdlib.h>
+#include <string.h>
+
+#include "log.h"
+
+static const char usage[] =
+    "Usage: volfxd [options]\n"
+    "  --listen HOST:PORT   TCP address (default 127.0.0.1:7878; port 0 picks one; 'none' "
+    "disables)\n"
+    "  --unix PATH          also listen on a Unix socket\n"
+    "  --data DIR           data directory for snapshots, sequences and meshes\n"
+    "  --token TOKEN        require 'auth' first (default: $VOLFX_TOKEN)\n"
+    "  --insecure           allow a non-loopback address without a token\n"
+    "  --device cpu|gpu|N   OpenCL device (default: the CPU device)\n"
+    "  --kernels DIR        load OpenCL sources from DIR instead of the embedded copies\n"
+    "  --scene FILE|PRESET  the 'main' scene at start (default: the demo preset)\n"
+    "  --presets DIR        where preset scenes live (default: the source tree's scenes/)\n"
+    "  --config FILE        JSON config file (members named like these options)\n"
+    "  --idle-timeout S     close connections idle this long (default 300; 0 never)\n"
+    "  --max-connections N  connection limit (default 256)\n"
+    "  --log-level L        debug, info, warn, error or quiet (default info)\n"
+    "  --version, --help\n";
+
+static int copy_str(char *dst, size_t cap, const char *src, const char *what) {
+  if (strlen(src) >= cap) {
+    fprintf(stderr, "volfxd: %s is too long (at most %zu bytes)\n", what, cap - 1);
+    return CONFIG_ERROR;
+  }
+  strcpy(dst, src);
+  return CONFIG_OK;
+}
+
+static int parse_listen(config_t *c, const char *s) {
+  if (strcmp(s, "none") == 0) {
+    c->listen_host[0] = '\0';
+    return CONFIG_OK;
+  }
+  const char *colon = strrchr(s, ':');
+  if (!colon || colon == s) {
+    fprintf(stderr, "volfxd: --listen wants HOST:PORT, got '%s'\n", s);
+    return CONFIG_ERROR;
+  }
+  char *end;
+  errno = 0;
+  long port = strtol(colon + 1, &end, 10);
+  if (errno || *end || end == colon + 1 || port < 0 || port > 65535) {
+    fprintf(stderr, "volfxd: --listen port must be 0-65535, got '%s'\n", colon + 1);
+    return CONFIG_ERROR;
+  }
+  size_t n = (size_t)(colon - s);
+  /* Accept "[::1]:7878" as well as "::1:7878". */
+  if (s[0] == '[' && colon[-1] == ']') {
+    s++;
+    n -= 2;
+  }
+  if (n >= sizeof c->listen_host) {
+    fprintf(stderr, "volfxd: --listen host is too long\n");
+    return CONFIG_ERROR;
+  }
+  memcpy(c->listen_host, s, n);
+  c->listen_host[n] = '\0';
+  c->listen_port = (int)port;
+  return CONFIG_OK;
+}
+
+static int parse_number(const char *s, double lo, double hi, const char *what, double *out) {
+  char *end;
+  errno = 0;
+  double v = strtod(s, &end);
+  if (errno || *end || end == s || !(v >= lo && v <= hi)) {
+    fprintf(stderr, "volfxd: %s must be a number in [%g, %g], got '%s'\n", what, lo, hi, s);
+    return CONFIG_ERROR;
+  }
+  *out = v;
+  return CONFIG_OK;
+}
+
+enum {
+  OPT_LISTEN = 256,
+  OPT_UNIX,
+  OPT_DATA,
+  OPT_TOKEN,
+  OPT_INSECURE,
+  OPT_DEVICE,
+  OPT_KERNELS,
+  OPT_SCENE,
+  OPT_PRESETS,
+  OPT_CONFIG,
+  OPT_IDLE,
+  OPT_MAXCONN,
+  OPT_LOGLEVEL,
+  OPT_VERSION,
+  OPT_HELP
+};
+
+static const struct option long_options[] = {
+    {"listen", required_argument, 0, OPT_LISTEN},
+    {"unix", required_argument, 0, OPT_UNIX},
+    {"data", required_argument, 0, OPT_DATA},
+    {"token", required_argument, 0, OPT_TOKEN},
+    {"insecure", no_argument, 0, OPT_INSECURE},
+    {"device", required_argument, 0, OPT_DEVICE},
+    {"kernels", required_argument, 0, OPT_KERNELS},
+    {"scene", required_argument, 0, OPT_SCENE},
+    {"presets", required_argument, 0, OPT_PRESETS},
+    {"config", required_argument, 0, OPT_CONFIG},
+    {"idle-timeout", required_argument, 0, OPT_IDLE},
+    {"max-connections", required_argument, 0, OPT_MAXCONN},
+    {"log-level", required_argument, 0, OPT_LOGLEVEL},
+    {"version", no_argument, 0, OPT_VERSION},
+    {"help", no_argument, 0, OPT_HELP},
+    {0, 0, 0, 0},
+};
+
+/* Applies one option, from the command line or the config file. */
+static int apply_option(config_t *c, int opt, const char *arg) {
+  double v;
+  switch (opt) {
+  case OPT_LISTEN:
+    return parse_listen(c, arg);
+  case OPT_UNIX:
+    return copy_str(c->unix_path, sizeof c->unix_path, arg, "--unix");
+  case OPT_DATA:
+    return copy_str(c->data_dir, sizeof c->data_dir, arg, "--data");
+  case OPT_TOKEN:
+    return copy_str(c->token, sizeof c->token, arg, "--token");
+  case OPT_INSECURE:
+    c->insecure = 1;
+    return CONFIG_OK;
+  case OPT_DEVICE:
+    return copy_str(c->device, sizeof c->device, arg, "--device");
+  case OPT_KERNELS:
+    return copy_str(c->kernels_dir, sizeof c->kernels_dir, arg, "--kernels");
+  case OPT_SCENE:
+    return copy_str(c->scene, sizeof c->scene, arg, "--scene");
+  case OPT_PRESETS:
+    return copy_str(c->presets_dir, sizeof c->presets_dir, arg, "--presets");
+  case OPT_IDLE:
+    if (parse_number(arg, 0, 86400 * 365, "--idle-timeout", &v))
+      return CONFIG_ERROR;
+    c->idle_timeout_s = v;
+    return CONFIG_OK;
+  case OPT_MAXCONN:
+    if (parse_number(arg, 1, 65536, "--max-connections", &v))
+      return CONFIG_ERROR;
+    c->limits.connections = (uint32_t)v;
+    return CONFIG_OK;
+  case OPT_LOGLEVEL:
+    c->log_level = log_level_parse(arg);
+    if (c->log_level < 0) {
+      fprintf(stderr, "volfxd: --log-level must be debug, info, warn, error or quiet\n");
+      return CONFIG_ERROR;
+    }
+    return CONFIG_OK;
+  }
+  return CONFIG_ERROR;
+}
+
+/* Reads the "limits" object of the config file. */
+static int apply_limits(config_t *c, const cJSON *lim) {
+  static const struct {
+    const char *name;
+    double lo, hi;
+  } keys[] = {{"line_bytes", 1024, 1 << 30}, {"frame_side", 1, 16384},
+              {"particles", 1, 1 << 26},     {"cloud_side", 1, 1024},
+              {"connections", 1, 65536},     {"output_bytes", 1 << 20, 1e12},
+              {"render_queue", 1, 65536}};
+  const cJSON *it;
+  cJSON_ArrayForEach(it, lim) {
+    size_t k;
+    for (k = 0; k < sizeof keys / sizeof keys[0]; k++)
+      if (strcmp(it->string, keys[k].name) == 0)
+        break;
+    if (k == sizeof keys / sizeof keys[0] || !cJSON_IsNumber(it) ||
+        !(it->valuedouble >= keys[k].lo && it->valuedouble <= keys[k].hi)) {
+      fprintf(stderr, "volfxd: config: limits.%s is unknown or out of range\n", it->string);
+      return CONFIG_ERROR;
+    }
+    double v = it->valuedouble;
+    switch (k) {
+    case 0:
+      c->limits.line_bytes = (size_t)v;
+      break;
+    case 1:
+      c->limits.frame_side = (uint32_t)v;
+      break;
+    case 2:
+      c->limits.particles = (uint32_t)v;
+      break;
+    case 3:
+      c->limits.cloud_side = (uint32_t)v;
+      break;
+    case 4:
+      c->limits.connections = (uint32_t)v;
+      break;
+    case 5:
+      c->limits.output_bytes = (size_t)v;
+      break;
+    case 6:
+      c->render_queue = (int)v;
+      break;
+    }
+  }
+  return CONFIG_OK;
+}
+
+static int load_file(config_t *c, const char *path) {
+  FILE *f = fopen(path, "rb");
+  if (!f) {
+    fprintf(stderr, "volfxd: cannot open config %s: %s\n", path, strerror(errno));
+    return CONFIG_ERROR;
+  }
+  char *text = NULL;
+  size_t len = 0, cap = 0;
+  for (;;) {
+    if (len + 4096 + 1 > cap) {
+      cap = cap ? cap * 2 : 8192;
+      char *t = realloc(text, cap);
+      if (!t) {
+        free(text);
+        fclose(f);
+        return CONFIG_ERROR;
+      }
+      text = t;
+    }
+    size_t n = fread(text + len, 1, 4096, f);
+    len += n;
+    if (n < 4096)
+      break;
+  }
+  fclose(f);
+  text[len] = '\0';
+  cJSON *doc = cJSON_Parse(text);
+  free(text);
+  if (!cJSON_IsObject(doc)) {
+    fprintf(stderr, "volfxd: config %s is not a JSON object\n", path);
+    cJSON_Delete(doc);
+    return CONFIG_ERROR;
+  }
+  int rc = CONFIG_OK;
+  const cJSON *it;
+  cJSON_ArrayForEach(it, doc) {
+    if (strcmp(it->string, "limits") == 0) {
+      rc = cJSON_IsObject(it) ? apply_limits(c, it) : CONFIG_ERROR;
+    } else {
+      const struct option *o = long_options;
+      while (o->name && strcmp(o->name, it->string) != 0)
+        o++;
+      if (!o->name || o->val == OPT_CONFIG || o->val == OPT_HELP || o->val == OPT_VERSION) {
+        fprintf(stderr, "volfxd: config %s: unknown member '%s'\n", path, it->string);
+        rc = CONFIG_ERROR;
+      } else if (o->has_arg == no_argument) {
+        if (cJSON_IsTrue(it))
+          rc = apply_option(c, o->val, NULL);
+      } else if (cJSON_IsString(it)) {
+        rc = apply_option(c, o->val, it->valuestring);
+      } else if (cJSON_IsNumber(it)) {
+        char num[64];
+        snprintf(num, sizeof num, "%.17g", it->valuedouble);
+        rc = apply_option(c, o->val, num);
+      } else {
+        fprintf(stderr, "volfxd: config %s: '%s' must be a string or number\n", path, it->string);
+        rc = CONFIG_ERROR;
+      }
+    }
+    if (rc)
+      break;
+  }
+  cJSON_Delete(doc);
+  return rc;
+}
+
+int config_host_is_loopback(const char *host) {
+  return strcmp(host, "localhost") == 0 || strncmp(host, "127.", 4) == 0 ||
+         strcmp(host, "::1") == 0;
+}
+
+int config_load(config_t *c, int argc, char **argv) {
+  memset(c, 0, sizeof *c);
+  strcpy(c->listen_host, PROTO_DEFAULT_HOST);
+  c->listen_port = PROTO_DEFAULT_PORT;
+  strcpy(c->presets_dir, VOLFX_PRESET_DIR);
+  strcpy(c->scene, "demo");
+  c->log_level = LOG_INFO;
+  c->idle_timeout_s = 300;
+  c->render_queue = 64;
+  proto_limits_default(&c->limits);
+
+  /* The config file is read first so that the command line overrides it. */
+  for (int i = 1; i < argc; i++) {
+    const char *arg = NULL;
+    if (strcmp(argv[i], "--config") == 0 && i + 1 < argc)
+      arg = argv[i + 1];
+    else if (strncmp(argv[i], "--config=", 9) == 0)
+      arg = argv[i] + 9;
+    if (arg && load_file(c, arg))
+      return CONFIG_ERROR;
+  }
+
+  optind = 1;
+  opterr = 0;
+  int opt;
+  while ((opt = getopt_long(argc, argv, "", long_options, NULL)) != -1) {
+    switch (opt) {
+    case OPT_HELP:
+      fputs(usage, stdout);
+      return CONFIG_EXIT_OK;
+    case OPT_VERSION:
+      printf("volfxd %s (protocol %s)\n", VOLFX_VERSION, PROTO_VERSION);
+      return CONFIG_EXIT_OK;
+    case OPT_CONFIG:
+      break;
+    case '?':
+    case ':':
+      fprintf(stderr, "volfxd: bad option '%s' (see --help)\n", argv[optind - 1]);
+      return CONFIG_ERROR;
+    default:
+      if (apply_option(c, opt, optarg))
+        return CONFIG_ERROR;
+    }
+  }
+  if (optind < argc) {
+    fprintf(stderr, "volfxd: unexpected argument '%s' (see --help)\n", argv[optind]);
+    return CONFIG_ERROR;
+  }
+  const char *env = getenv("VOLFX_TOKEN");
+  if (!c->token[0] && env && env[0] && copy_str(c->token, sizeof c->token, env, "VOLFX_TOKEN"))
+    return CONFIG_ERROR;
+
+  if (c->listen_host[0] && !config_host_is_loopback(c->listen_host) && !c->token[0] &&
+      !c->insecure) {
+    fprintf(stderr, "volfxd: refusing to listen on %s without a token; set --token or --insecure\n",
+            c->listen_host);
+    return CONFIG_ERROR;
+  }
+  if (!c->listen_host[0] && !c->unix_path[0]) {
+    fprintf(stderr, "volfxd: nothing to listen on (--listen none without --unix)\n");
+    return CONFIG_ERROR;
+  }
+  return CONFIG_OK;
+}

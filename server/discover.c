@@ -1,0 +1,59 @@
+/*
+ * The OpenRPC document of rpc.discover, generated from the method table and the scene schema,
+ * so that what the server checks and what it publishes cannot drift apart.
+ */
+#include "dispatch.h"
+
+static cJSON *error_json(int code) {
+  cJSON *e = cJSON_CreateObject();
+  cJSON_AddNumberToObject(e, "code", code);
+  cJSON_AddStringToObject(e, "message", proto_err_message(code));
+  return e;
+}
+
+static cJSON *method_json(const method_t *m) {
+  cJSON *o = cJSON_CreateObject();
+  cJSON_AddStringToObject(o, "name", m->name);
+  cJSON_AddStringToObject(o, "summary", m->summary);
+  cJSON_AddStringToObject(o, "paramStructure", "by-name");
+  cJSON *params = cJSON_AddArrayToObject(o, "params");
+  for (const sch_field_t *f = m->params->fields; f && f->name; f++) {
+    cJSON *p = cJSON_CreateObject();
+    cJSON_AddStringToObject(p, "name", f->name);
+    if (f->desc)
+      cJSON_AddStringToObject(p, "description", f->desc);
+    cJSON_AddBoolToObject(p, "required", (f->flags & SCH_REQUIRED) != 0);
+    cJSON_AddItemToObject(p, "schema", sch_to_json_schema(f));
+    cJSON_AddItemToArray(params, p);
+  }
+  cJSON *result = cJSON_AddObjectToObject(o, "result");
+  cJSON_AddStringToObject(result, "name", "result");
+  cJSON_AddStringToObject(result, "description", m->result);
+  cJSON_AddItemToObject(result, "schema", cJSON_CreateObject());
+  cJSON *errors = cJSON_AddArrayToObject(o, "errors");
+  cJSON_AddItemToArray(errors, error_json(PROTO_E_INVALID_PARAMS));
+  for (const int *e = m->errors; e && *e; e++)
+    cJSON_AddItemToArray(errors, error_json(*e));
+  return o;
+}
+
+cJSON *discover_document(const server_t *s) {
+  (void)s;
+  cJSON *doc = cJSON_CreateObject();
+  cJSON_AddStringToObject(doc, "openrpc", "1.2.6");
+  cJSON *info = cJSON_AddObjectToObject(doc, "info");
+  cJSON_AddStringToObject(info, "title", "volfxd");
+  cJSON_AddStringToObject(info, "version", VOLFX_VERSION);
+  cJSON_AddStringToObject(info, "x-protocol", PROTO_VERSION);
+  cJSON *methods = cJSON_AddArrayToObject(doc, "methods");
+  for (const method_t *const *m = method_table; *m; m++)
+    cJSON_AddItemToArray(methods, method_json(*m));
+  cJSON *components = cJSON_AddObjectToObject(doc, "components");
+  cJSON *schemas = cJSON_AddObjectToObject(components, "schemas");
+  cJSON_AddItemToObject(schemas, "Scene", sch_to_json_schema(&scene_schema));
+  cJSON *errors = cJSON_AddObjectToObject(components, "errors");
+#define XX(name, code, msg) cJSON_AddItemToObject(errors, #name, error_json(code));
+  PROTO_ERROR_MAP(XX)
+#undef XX
+  return doc;
+}

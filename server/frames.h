@@ -1,0 +1,87 @@
+/*
+ * Frame subscriptions: a timer per subscription renders frames at its rate and pushes them
+ * as 'frames' notifications. Latest frame wins: while the connection's socket is still busy
+ * with earlier output, at most one finished frame waits per subscription, and a newer one
+ * replaces it; every frame that is due or rendered but never delivered is counted as dropped.
+ */
+#ifndef VOLFX_FRAMES_H
+#define VOLFX_FRAMES_H
+
+#include "server.h"
+#include "worker.h"
+
+#define FRAMES_MAX_PER_CONN 16
+
+/* The connection closed: ends its subscriptions. Safe to call more than once. */
+void frames_conn_closed(conn_t *c);
+/* The connection's socket has no queued output: writes waiting frames. */
+void frames_conn_drained(conn_t *c);
+/* The scene was deleted: ends its subscriptions with a 'frames.ended' notification. */
+void frames_scene_deleted(server_t *s, const char *scene);
+
+/*
+ * Fills 'j' (scene reference, params, camera) from validated render params, shared by render
+ * and frames.subscribe. On error answers nothing and returns the PROTO_E_* code with 'path'
+ * and 'msg' filled.
+ */
+int render_job_from_params(server_t *s, scene_entry_t *e, const cJSON *params, job_t *j, char *path,
+                           size_t pathlen, char *msg, size_t msglen);
+/* Records a finished job's passes and frame in the server's stats. */
+void render_job_stats(server_t *s, const job_t *j);
+/* The work_ms object of a finished job: each pass, "queue" and "total". */
+cJSON *render_job_times(const job_t *j);
+
+/* The params shared by render and frames.subscribe, ended by {0}. */
+#define RENDER_PARAMS_COMMON                                                                       \
+  PARAM_SCENE,                                                                                     \
+      {.name = "width",                                                                            \
+       .type = SCH_INTEGER,                                                                        \
+       .desc = "Frame width; at most limits.frame_side (larger is -32003).",                       \
+       .unit = "pixels",                                                                           \
+       .min = 1,                                                                                   \
+       .max = 2147483647,                                                                          \
+       .def = 512},                                                                                \
+      {.name = "height",                                                                           \
+       .type = SCH_INTEGER,                                                                        \
+       .desc = "Frame height; at most limits.frame_side (larger is -32003).",                      \
+       .unit = "pixels",                                                                           \
+       .min = 1,                                                                                   \
+       .max = 2147483647,                                                                          \
+       .def = 512},                                                                                \
+      {.name = "format",                                                                           \
+       .type = SCH_ENUM,                                                                           \
+       .desc = "png, rgba8 or rgbaf32 for the beauty aov; f32 for depth and wave_h.",              \
+       .enum_values = render_formats,                                                              \
+       .def_str = "png"},                                                                          \
+      {.name = "aov",                                                                              \
+       .type = SCH_ENUM,                                                                           \
+       .desc = "beauty, depth (f32 distance along the ray, +inf for none) or wave_h.",             \
+       .enum_values = render_aovs,                                                                 \
+       .def_str = "beauty"},                                                                       \
+      {.name = "layers",                                                                           \
+       .type = SCH_ARRAY,                                                                          \
+       .desc = "Effects to draw; default all.",                                                    \
+       .max = 5,                                                                                   \
+       .items = &render_layer_item,                                                                \
+       .flags = SCH_NO_DEFAULT},                                                                   \
+      {.name = "camera",                                                                           \
+       .type = SCH_ANY,                                                                            \
+       .desc = "Members of the scene camera overriding it for this frame.",                        \
+       .flags = SCH_NO_DEFAULT},                                                                   \
+      {.name = "encoding",                                                                         \
+       .type = SCH_ENUM,                                                                           \
+       .desc = "binary: an attachment after the line; base64: inline in 'data'.",                  \
+       .enum_values = render_encodings,                                                            \
+       .def_str = "binary"},                                                                       \
+  {                                                                                                \
+    .name = "png_level", .type = SCH_INTEGER,                                                      \
+    .desc = "zlib level for png, or -1 for the fast default (level 1, no filter).", .min = -1,     \
+    .max = 9, .def = -1                                                                            \
+  }
+
+extern const char *const render_formats[];
+extern const char *const render_aovs[];
+extern const char *const render_encodings[];
+extern const sch_field_t render_layer_item;
+
+#endif

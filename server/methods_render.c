@@ -1,0 +1,252 @@
+/*
+ * The render method and what it shares with frame subscriptions: turning validated params
+ * into a render job, and a finished job into work_ms timings and statistics. The job runs on
+ * the render worker; the loop thread only validates, queues and answers.
+ */
+#include <math.h>
+#include <stdio.h>
+#include <stdlib.h>
+#include <string.h>
+
+#include "dispatch.h"
+#include "frames.h"
+
+const char *const render_formats[] = {"png", "rgba8", "rgbaf32", "f32", NULL};
+const char *const render_aovs[] = {"beauty", "depth", "wave_h", NULL};
+const char *const render_encodings[] = {"binary", "base64", NULL};
+static const char *const layer_names[] = {"objects", "volumes", "cloud", "fluid", "waves", NULL};
+const sch_field_t render_layer_item = {.type = SCH_ENUM,
+                                       .desc = "objects, volumes, cloud, fluid or waves.",
+                                       .enum_values = layer_names};
+
+static void vec3_of(const cJSON *o, const char *name, float out[3]) {
+  const cJSON *v = cJSON_GetObjectItem(o, name);
+  for (int i = 0; i < 3; i++)
+    out[i] = (float)cJSON_GetArrayItem(v, i)->valuedouble;
+}
+
+/* Builds the camera for a frame: the scene's camera with the 'camera' param's members over
+ * it, validated by the scene schema's camera description. */
+static int camera_override(scene_entry_t *e, const cJSON *over, rcamera_t *cam, char *path,
+                           size_t pathlen, char *msg, size_t msglen) {
+  if (!cJSON_IsObject(over)) {
+    snprintf(path, pathlen, "camera");
+    snprintf(msg, msglen, "invalid params: camera must be an object of camera members");
+    return PROTO_E_INVALID_PARAMS;
+  }
+  scene_error_t serr;
+  cJSON *doc = scene_get(e->scene, "camera", &serr);
+  const cJSON *it;
+  cJSON_ArrayForEach(it, over) {
+    cJSON_DeleteItemFromObject(doc, it->string);
+    cJSON_AddItemToObject(doc, it->string, cJSON_Duplicate(it, 1));
+  }
+  sch_error_t err;
+  const sch_field_t *f = sch_path_field(&scene_schema, "camera");
+  if (sch_validate(f, doc, "camera", &err) != 0) {
+    cJSON_Delete(doc);
+    snprintf(path, pathlen, "%s", err.path);
+    snprintf(msg, msglen, "invalid params: %s", err.message);
+    return PROTO_E_INVALID_PARAMS;
+  }
+  vec3_of(doc, "eye", cam->eye);
+  vec3_of(doc, "target", cam->target);
+  vec3_of(doc, "up", cam->up);
+  cam->fov_y = (float)cJSON_GetObjectItem(doc, "fov_y")->valuedouble;
+  cam->near_ = (float)cJSON_GetObjectItem(doc, "near")->valuedouble;
+  cam->far_ = (float)cJSON_GetObjectItem(doc, "far")->valuedouble;
+  cJSON_Delete(doc);
+
+  float f3[3] = {cam->target[0] - cam->eye[0], cam->target[1] - cam->eye[1],
+                 cam->target[2] - cam->eye[2]};
+  float fl = sqrtf(f3[0] * f3[0] + f3[1] * f3[1] + f3[2] * f3[2]);
+  float cx = f3[1] * cam->up[2] - f3[2] * cam->up[1];
+  float cy = f3[2] * cam->up[0] - f3[0] * cam->up[2];
+  float cz = f3[0] * cam->up[1] - f3[1] * cam->up[0];
+  float ul = sqrtf(cam->up[0] * cam->up[0] + cam->up[1] * cam->up[1] + cam->up[2] * cam->up[2]);
+  if (!(fl > 0)) {
+    snprintf(path, pathlen, "camera.target");
+    snprintf(msg, msglen, "invalid params: camera.target must differ from camera.eye");
+    return PROTO_E_INVALID_PARAMS;
+  }
+  if (!(sqrtf(cx * cx + cy * cy + cz * cz) > 1e-6f * fl * ul)) {
+    snprintf(path, pathlen, "camera.up");
+    snprintf(msg, msglen, "invalid params: camera.up is parallel to the view direction");
+    return PROTO_E_INVALID_PARAMS;
+  }
+  if (!(cam->near_ < cam->far_)) {
+    snprintf(path, pathlen, "camera.far");
+    snprintf(msg, msglen, "invalid params: camera.far must be greater than camera.near");
+    return PROTO_E_INVALID_PARAMS;
+  }
+  return 0;
+}
+
+int render_job_from_params(server_t *s, scene_entry_t *e, const cJSON *params, job_t *j, char *path,
+                           size_t pathlen, char *msg, size_t msglen) {
+  uint32_t side = s->cfg.limits.frame_side;
+  double w = cJSON_GetObjectItem(params, "width")->valuedouble;
+  double h = cJSON_GetObjectItem(params, "height")->valuedouble;
+  if (w > side || h > side) {
+    snprintf(path, pathlen, w > side ? "width" : "height");
+    snprintf(msg, msglen, "limit exceeded: %s %.0f is over limits.frame_side (%u)",
+             w > side ? "width" : "height", w > side ? w : h, side);
+    return PROTO_E_LIMIT;
+  }
+  memset(j, 0, sizeof *j);
+  j->params.width = (uint32_t)w;
+  j->params.height = (uint32_t)h;
+  j->params.format =
+      (proto_format_t)proto_format_parse(cJSON_GetObjectItem(params, "format")->valuestring);
+  const char *aov = cJSON_GetObjectItem(params, "aov")->valuestring;
+  j->params.aov = strcmp(aov, "depth") == 0    ? AOV_DEPTH
+                  : strcmp(aov, "wave_h") == 0 ? AOV_WAVE_H
+                                               : AOV_BEAUTY;
+  int beauty_format = j->params.format != PROTO_FMT_F32;
+  if ((j->params.aov == AOV_BEAUTY) != beauty_format) {
+    snprintf(path, pathlen, "format");
+    snprintf(msg, msglen,
+             "invalid params: format '%s' does not go with aov '%s' (beauty: png, rgba8, "
+             "rgbaf32; depth and wave_h: f32)",
+             proto_format_name(j->params.format), aov);
+    return PROTO_E_INVALID_PARAMS;
+  }
+  const cJSON *layers = cJSON_GetObjectItem(params, "layers");
+  if (layers) {
+    const cJSON *it;
+    cJSON_ArrayForEach(it, layers) {
+      for (int i = 0; layer_names[i]; i++)
+        if (strcmp(it->valuestring, layer_names[i]) == 0)
+          j->params.layers |= 1u << i;
+    }
+  } else {
+    j->params.layers = LAYER_ALL;
+  }
+  j->params.png_level = (int)cJSON_GetObjectItem(params, "png_level")->valuedouble;
+  const cJSON *cam = cJSON_GetObjectItem(params, "camera");
+  if (cam) {
+    int rc = camera_override(e, cam, &j->camera, path, pathlen, msg, msglen);
+    if (rc)
+      return rc;
+    j->has_camera = 1;
+  }
+  j->scene = render_scene_ref(e->scene->snapshot);
+  j->frame = j->scene->frame;
+  j->time = j->scene->time;
+  return 0;
+}
+
+void render_job_stats(server_t *s, const job_t *j) {
+  if (j->code != 0)
+    return;
+  for (int i = 0; i < j->out.npasses; i++)
+    stats_pass(&s->stats, j->out.passes[i].name, j->out.passes[i].ms);
+  stats_pass(&s->stats, "queue", (double)(j->t_started_ns - j->t_queued_ns) / 1e6);
+  stats_frame(&s->stats, now_ns());
+}
+
+cJSON *render_job_times(const job_t *j) {
+  cJSON *t = cJSON_CreateObject();
+  for (int i = 0; i < j->out.npasses; i++)
+    cJSON_AddNumberToObject(t, j->out.passes[i].name, j->out.passes[i].ms);
+  cJSON_AddNumberToObject(t, "queue", (double)(j->t_started_ns - j->t_queued_ns) / 1e6);
+  cJSON_AddNumberToObject(t, "total", j->out.total_ms);
+  return t;
+}
+
+/* Per-request state of a render call while its job runs. */
+typedef struct render_call {
+  job_t job;
+  call_t *call;
+  cJSON *t; /* The client's 't', echoed. */
+  int base64;
+} render_call_t;
+
+static void on_render_done(job_t *j) {
+  render_call_t *rc = j->ctx;
+  call_t *call = rc->call;
+  server_t *s = call->srv;
+  render_job_stats(s, j);
+  if (j->code != 0) {
+    call_error(call, j->code, j->code == PROTO_E_INVALID_PARAMS ? "format" : NULL, "%s: %s",
+               proto_err_message(j->code), j->err);
+    free(j->out.bytes);
+  } else if (call->conn->closing) {
+    /* The client went away mid-frame: nothing to send. */
+    free(j->out.bytes);
+    call_result(call, cJSON_CreateObject());
+  } else {
+    cJSON *r = cJSON_CreateObject();
+    const char *fmt = proto_format_name(j->params.format);
+    cJSON_AddNumberToObject(r, "width", j->params.width);
+    cJSON_AddNumberToObject(r, "height", j->params.height);
+    cJSON_AddStringToObject(r, "format", fmt);
+    cJSON_AddStringToObject(r, "aov",
+                            j->params.aov == AOV_DEPTH    ? "depth"
+                            : j->params.aov == AOV_WAVE_H ? "wave_h"
+                                                          : "beauty");
+    cJSON_AddNumberToObject(r, "frame", (double)j->frame);
+    cJSON_AddNumberToObject(r, "time", j->time);
+    cJSON_AddItemToObject(r, "work_ms", render_job_times(j));
+    if (rc->t) {
+      cJSON_AddItemToObject(r, "t", rc->t);
+      rc->t = NULL;
+    }
+    call_result_bytes(call, r, j->out.bytes, j->out.nbytes, fmt, j->params.width, j->params.height,
+                      rc->base64);
+  }
+  cJSON_Delete(rc->t);
+  free(rc);
+}
+
+static void render_m(call_t *call) {
+  scene_entry_t *e = call_scene(call);
+  if (!e)
+    return;
+  render_call_t *rc = calloc(1, sizeof *rc);
+  if (!rc) {
+    call_error(call, PROTO_E_INTERNAL, NULL, "internal error: out of memory");
+    return;
+  }
+  char path[128], msg[512];
+  int code = render_job_from_params(call->srv, e, call->params, &rc->job, path, sizeof path, msg,
+                                    sizeof msg);
+  if (code) {
+    free(rc);
+    call_error(call, code, path, "%s", msg);
+    return;
+  }
+  rc->call = call;
+  rc->base64 = strcmp(cJSON_GetObjectItem(call->params, "encoding")->valuestring, "base64") == 0;
+  const cJSON *t = cJSON_GetObjectItem(call->params, "t");
+  rc->t = t ? cJSON_Duplicate(t, 1) : NULL;
+  rc->job.done = on_render_done;
+  rc->job.ctx = rc;
+  if (worker_submit(call->srv->worker, &rc->job) != 0) {
+    render_scene_unref(rc->job.scene);
+    cJSON_Delete(rc->t);
+    free(rc);
+    call_error(call, PROTO_E_BUSY, NULL, "busy: the render queue is full (%d jobs); retry later",
+               call->srv->cfg.render_queue);
+  }
+}
+
+static const sch_field_t render_params[] = {
+    RENDER_PARAMS_COMMON,
+    {.name = "t",
+     .type = SCH_ANY,
+     .desc = "Any value, echoed in the result to measure latency.",
+     .flags = SCH_NO_DEFAULT},
+    {0}};
+
+static const int render_errors[] = {PROTO_E_UNAUTHORIZED, PROTO_E_BUSY,   PROTO_E_LIMIT,
+                                    PROTO_E_NOT_FOUND,    PROTO_E_DEVICE, 0};
+
+const method_t method_render = {
+    .name = "render",
+    .summary = "Renders one frame, returned as an attachment with per-pass timings.",
+    .params = &(sch_field_t){.type = SCH_OBJECT, .fields = render_params},
+    .result = "{width, height, format, aov, frame, time, work_ms {pass: ms, queue, total}, t, "
+              "attachment {bytes, format, width, height}}",
+    .errors = render_errors,
+    .handler = render_m};

@@ -1,0 +1,332 @@
+/*
+ * Scene and clock methods: scene.list, scene.create, scene.delete, scene.get, scene.set,
+ * sim.step, sim.play and sim.pause.
+ */
+#include <ctype.h>
+#include <math.h>
+#include <string.h>
+
+#include "dispatch.h"
+#include "frames.h"
+
+static void answer_scene_error(call_t *call, const scene_error_t *err, const char *fallback) {
+  const char *path = err->path[0] ? err->path : fallback;
+  int code = err->code ? err->code : PROTO_E_INVALID_PARAMS;
+  call_error(call, code, path, "%s: %s", proto_err_message(code), err->message);
+}
+
+static void scene_list(call_t *call) {
+  cJSON *r = cJSON_CreateObject();
+  cJSON *arr = cJSON_AddArrayToObject(r, "scenes");
+  for (scene_entry_t *e = call->srv->scenes; e; e = e->next) {
+    cJSON *o = cJSON_CreateObject();
+    cJSON_AddStringToObject(o, "name", e->scene->name);
+    cJSON_AddNumberToObject(o, "frame", scene_frame(e->scene));
+    cJSON_AddNumberToObject(o, "time", scene_time(e->scene));
+    cJSON_AddBoolToObject(o, "playing", e->rate > 0);
+    cJSON_AddNumberToObject(o, "version", (double)e->scene->version);
+    cJSON_AddItemToArray(arr, o);
+  }
+  call_result(call, r);
+}
+
+static int valid_name(const char *s) {
+  if (!s[0] || strlen(s) > 63)
+    return 0;
+  for (; *s; s++)
+    if (!isalnum((unsigned char)*s) && *s != '_' && *s != '-' && *s != '.')
+      return 0;
+  return 1;
+}
+
+static void scene_create_m(call_t *call) {
+  const char *name = cJSON_GetStringValue(cJSON_GetObjectItem(call->params, "name"));
+  const char *preset = cJSON_GetStringValue(cJSON_GetObjectItem(call->params, "preset"));
+  if (!valid_name(name)) {
+    call_error(call, PROTO_E_INVALID_PARAMS, "name",
+               "invalid params: name must be 1-63 characters of A-Z a-z 0-9 _ . -");
+    return;
+  }
+  if (server_find_scene(call->srv, name)) {
+    call_error(call, PROTO_E_INVALID_PARAMS, "name", "invalid params: scene '%s' exists", name);
+    return;
+  }
+  if (preset && !valid_name(preset)) {
+    call_error(call, PROTO_E_NOT_FOUND, "preset", "not found: no preset named '%s'", preset);
+    return;
+  }
+  scene_error_t err = {0};
+  if (!server_add_scene(call->srv, name, preset, &err)) {
+    answer_scene_error(call, &err, "preset");
+    return;
+  }
+  cJSON *r = cJSON_CreateObject();
+  cJSON_AddStringToObject(r, "name", name);
+  call_result(call, r);
+}
+
+static void scene_delete_m(call_t *call) {
+  const char *name = cJSON_GetStringValue(cJSON_GetObjectItem(call->params, "name"));
+  scene_entry_t *e = server_find_scene(call->srv, name);
+  if (!e) {
+    call_error(call, PROTO_E_NOT_FOUND, "name", "not found: no scene named '%s'", name);
+    return;
+  }
+  frames_scene_deleted(call->srv, name);
+  server_remove_scene(call->srv, e);
+  cJSON *r = cJSON_CreateObject();
+  cJSON_AddStringToObject(r, "deleted", name);
+  call_result(call, r);
+}
+
+static void scene_get_m(call_t *call) {
+  scene_entry_t *e = call_scene(call);
+  if (!e)
+    return;
+  const char *path = cJSON_GetStringValue(cJSON_GetObjectItem(call->params, "path"));
+  scene_error_t err = {0};
+  cJSON *v = scene_get(e->scene, path, &err);
+  if (!v) {
+    err.code = err.code ? err.code : PROTO_E_NOT_FOUND;
+    call_error(call, err.code, "path", "%s: %s", proto_err_message(err.code), err.message);
+    return;
+  }
+  call_result(call, v);
+}
+
+static void scene_set_m(call_t *call) {
+  scene_entry_t *e = call_scene(call);
+  if (!e)
+    return;
+  const cJSON *patch = cJSON_GetObjectItem(call->params, "patch");
+  const cJSON *path = cJSON_GetObjectItem(call->params, "path");
+  const cJSON *value = cJSON_GetObjectItem(call->params, "value");
+  scene_error_t err = {0};
+  int rc;
+  if (patch && !path && !value) {
+    if (!cJSON_IsObject(patch)) {
+      call_error(call, PROTO_E_INVALID_PARAMS, "patch",
+                 "invalid params: patch must be a JSON object (RFC 7386 merge patch)");
+      return;
+    }
+    rc = scene_patch(e->scene, patch, &err);
+  } else if (path && value && !patch) {
+    rc = scene_set_path(e->scene, path->valuestring, value, &err);
+  } else {
+    call_error(call, PROTO_E_INVALID_PARAMS, patch ? "patch" : "path",
+               "invalid params: give either 'patch', or both 'path' and 'value'");
+    return;
+  }
+  if (rc != 0) {
+    answer_scene_error(call, &err, NULL);
+    return;
+  }
+  cJSON *r = cJSON_CreateObject();
+  cJSON_AddNumberToObject(r, "version", (double)e->scene->version);
+  call_result(call, r);
+}
+
+static cJSON *clock_json(const scene_entry_t *e) {
+  cJSON *r = cJSON_CreateObject();
+  cJSON_AddNumberToObject(r, "time", scene_time(e->scene));
+  cJSON_AddNumberToObject(r, "frame", scene_frame(e->scene));
+  return r;
+}
+
+static void sim_step(call_t *call) {
+  scene_entry_t *e = call_scene(call);
+  if (!e)
+    return;
+  unsigned steps = (unsigned)cJSON_GetObjectItem(call->params, "steps")->valuedouble;
+  const cJSON *dt = cJSON_GetObjectItem(call->params, "dt");
+  scene_advance(e->scene, steps, dt ? dt->valuedouble : scene_dt(e->scene));
+  call_result(call, clock_json(e));
+}
+
+/* The play timer: takes the steps that wall time owes since play started. */
+static void on_play(uv_timer_t *t) {
+  scene_entry_t *e = t->data;
+  double elapsed = (double)(now_ns() - e->play_start_ns) / 1e9;
+  uint64_t due = (uint64_t)floor(elapsed * e->rate);
+  if (due > e->play_steps) {
+    uint64_t n = due - e->play_steps;
+    /* After a long stall, do not try to catch up more than a second's worth. */
+    if (n > (uint64_t)ceil(e->rate))
+      n = (uint64_t)ceil(e->rate);
+    scene_advance(e->scene, (unsigned)n, scene_dt(e->scene));
+    e->play_steps = due;
+  }
+}
+
+static void set_playing(scene_entry_t *e, int playing) {
+  cJSON *patch = cJSON_CreateObject();
+  cJSON *sim = cJSON_AddObjectToObject(patch, "sim");
+  cJSON_AddBoolToObject(sim, "playing", playing);
+  scene_error_t err;
+  scene_patch(e->scene, patch, &err);
+  cJSON_Delete(patch);
+}
+
+static void sim_play(call_t *call) {
+  scene_entry_t *e = call_scene(call);
+  if (!e)
+    return;
+  e->rate = cJSON_GetObjectItem(call->params, "rate")->valuedouble;
+  e->play_start_ns = now_ns();
+  e->play_steps = 0;
+  /* Tick at the step rate up to 200 Hz; faster rates take several steps per tick. */
+  double hz = e->rate < 200 ? e->rate : 200;
+  uint64_t ms = (uint64_t)(1000.0 / hz);
+  uv_timer_start(&e->play, on_play, ms ? ms : 1, ms ? ms : 1);
+  set_playing(e, 1);
+  cJSON *r = clock_json(e);
+  cJSON_AddBoolToObject(r, "playing", 1);
+  cJSON_AddNumberToObject(r, "rate", e->rate);
+  call_result(call, r);
+}
+
+static void sim_pause(call_t *call) {
+  scene_entry_t *e = call_scene(call);
+  if (!e)
+    return;
+  uv_timer_stop(&e->play);
+  e->rate = 0;
+  set_playing(e, 0);
+  cJSON *r = clock_json(e);
+  cJSON_AddBoolToObject(r, "playing", 0);
+  call_result(call, r);
+}
+
+static const sch_field_t list_params[] = {{0}};
+static const sch_field_t create_params[] = {
+    {.name = "name",
+     .type = SCH_STRING,
+     .desc = "Name of the new scene: [A-Za-z0-9_.-]{1,63}.",
+     .max = 63,
+     .flags = SCH_REQUIRED},
+    {.name = "preset",
+     .type = SCH_STRING,
+     .desc = "A preset from scenes/ (\"demo\", ...); omitted for the default scene.",
+     .max = 63,
+     .flags = SCH_NO_DEFAULT},
+    {0}};
+static const sch_field_t delete_params[] = {{.name = "name",
+                                             .type = SCH_STRING,
+                                             .desc = "Name of the scene to delete.",
+                                             .max = 63,
+                                             .flags = SCH_REQUIRED},
+                                            {0}};
+static const sch_field_t get_params[] = {
+    PARAM_SCENE,
+    {.name = "path",
+     .type = SCH_STRING,
+     .desc = "Dotted path of a sub-tree (\"camera.eye\", \"objects.0.color\"); omitted for all.",
+     .max = 255,
+     .flags = SCH_NO_DEFAULT},
+    {0}};
+static const sch_field_t set_params[] = {
+    PARAM_SCENE,
+    {.name = "patch",
+     .type = SCH_ANY,
+     .desc = "An RFC 7386 merge patch of the scene document (arrays replaced whole).",
+     .flags = SCH_NO_DEFAULT},
+    {.name = "path",
+     .type = SCH_STRING,
+     .desc = "Dotted path of one value to set (with 'value'); an index equal to an array's "
+             "length appends.",
+     .max = 255,
+     .flags = SCH_NO_DEFAULT},
+    {.name = "value",
+     .type = SCH_ANY,
+     .desc = "The value to set at 'path'.",
+     .flags = SCH_NO_DEFAULT},
+    {0}};
+static const sch_field_t step_params[] = {PARAM_SCENE,
+                                          {.name = "steps",
+                                           .type = SCH_INTEGER,
+                                           .desc = "Number of simulation steps.",
+                                           .min = 1,
+                                           .max = 100000,
+                                           .def = 1},
+                                          {.name = "dt",
+                                           .type = SCH_NUMBER,
+                                           .desc = "Step length; default the scene's sim.dt.",
+                                           .unit = "seconds",
+                                           .min = 0,
+                                           .max = 1,
+                                           .flags = SCH_POSITIVE | SCH_NO_DEFAULT},
+                                          {0}};
+static const sch_field_t play_params[] = {PARAM_SCENE,
+                                          {.name = "rate",
+                                           .type = SCH_NUMBER,
+                                           .desc = "Simulation steps per second of wall time.",
+                                           .unit = "steps/second",
+                                           .min = 0,
+                                           .max = 1000,
+                                           .def = 60,
+                                           .flags = SCH_POSITIVE},
+                                          {0}};
+static const sch_field_t pause_params[] = {PARAM_SCENE, {0}};
+
+static const int auth_errors[] = {PROTO_E_UNAUTHORIZED, 0};
+static const int scene_errors[] = {PROTO_E_UNAUTHORIZED, PROTO_E_NOT_FOUND, 0};
+static const int set_errors[] = {PROTO_E_UNAUTHORIZED, PROTO_E_NOT_FOUND, PROTO_E_LIMIT, 0};
+
+#define OBJ(f)                                                                                     \
+  &(sch_field_t) {                                                                                 \
+    .type = SCH_OBJECT, .fields = (f)                                                              \
+  }
+
+const method_t method_scene_list = {.name = "scene.list",
+                                    .summary = "The named scenes with their clocks.",
+                                    .params = OBJ(list_params),
+                                    .result = "{scenes: [{name, frame, time, playing, version}]}",
+                                    .errors = auth_errors,
+                                    .handler = scene_list};
+const method_t method_scene_create = {
+    .name = "scene.create",
+    .summary = "Creates a named scene, with its own state and clock, from a preset or defaults.",
+    .params = OBJ(create_params),
+    .result = "{name}",
+    .errors = scene_errors,
+    .handler = scene_create_m};
+const method_t method_scene_delete = {.name = "scene.delete",
+                                      .summary = "Deletes a scene; its subscriptions end.",
+                                      .params = OBJ(delete_params),
+                                      .result = "{deleted}",
+                                      .errors = scene_errors,
+                                      .handler = scene_delete_m};
+const method_t method_scene_get = {.name = "scene.get",
+                                   .summary =
+                                       "The scene document, or the sub-tree at a dotted path.",
+                                   .params = OBJ(get_params),
+                                   .result = "The document or the value at 'path'.",
+                                   .errors = scene_errors,
+                                   .handler = scene_get_m};
+const method_t method_scene_set = {
+    .name = "scene.set",
+    .summary = "Applies a merge patch or sets one path; validated as a whole, applied "
+               "atomically; errors name the offending path.",
+    .params = OBJ(set_params),
+    .result = "{version}",
+    .errors = set_errors,
+    .handler = scene_set_m};
+const method_t method_sim_step = {.name = "sim.step",
+                                  .summary = "Advances the scene's simulations by 'steps' steps.",
+                                  .params = OBJ(step_params),
+                                  .result = "{time, frame}",
+                                  .errors = scene_errors,
+                                  .handler = sim_step};
+const method_t method_sim_play = {
+    .name = "sim.play",
+    .summary = "Runs the simulation freely inside the server at 'rate' steps per second.",
+    .params = OBJ(play_params),
+    .result = "{playing, rate, time, frame}",
+    .errors = scene_errors,
+    .handler = sim_play};
+const method_t method_sim_pause = {.name = "sim.pause",
+                                   .summary = "Stops the free-running simulation.",
+                                   .params = OBJ(pause_params),
+                                   .result = "{playing, time, frame}",
+                                   .errors = scene_errors,
+                                   .handler = sim_pause};

@@ -1,0 +1,179 @@
+/*
+ * The server's scene registry and life cycle: adding, finding and removing named scenes,
+ * loading presets, and the graceful stop (stop accepting, answer what is pending, let the
+ * render worker finish, close every handle, leave the loop).
+ */
+#include <errno.h>
+#include <stdio.h>
+#include <stdlib.h>
+#include <string.h>
+
+#include "frames.h"
+#include "log.h"
+#include "server.h"
+#include "worker.h"
+
+uint64_t now_ns(void) {
+  return uv_hrtime();
+}
+
+scene_entry_t *server_find_scene(server_t *s, const char *name) {
+  for (scene_entry_t *e = s->scenes; e; e = e->next)
+    if (strcmp(e->scene->name, name) == 0)
+      return e;
+  return NULL;
+}
+
+/* Reads a whole file into a NUL-terminated buffer; NULL with errno set on failure. */
+static char *read_file(const char *path, size_t max) {
+  FILE *f = fopen(path, "rb");
+  if (!f)
+    return NULL;
+  char *buf = NULL;
+  size_t len = 0, cap = 0;
+  for (;;) {
+    if (len + 65536 + 1 > cap) {
+      cap = cap ? cap * 2 : 131072;
+      char *b = realloc(buf, cap);
+      if (!b || cap > max + 65536 + 1) {
+        free(b ? b : buf);
+        fclose(f);
+        errno = b ? EFBIG : ENOMEM;
+        return NULL;
+      }
+      buf = b;
+    }
+    size_t n = fread(buf + len, 1, 65536, f);
+    len += n;
+    if (n < 65536)
+      break;
+  }
+  fclose(f);
+  buf[len] = '\0';
+  return buf;
+}
+
+cJSON *server_load_preset(server_t *s, const char *name, scene_error_t *err) {
+  char path[2048];
+  size_t n = strlen(name);
+  int is_file = strchr(name, '/') || (n > 5 && strcmp(name + n - 5, ".json") == 0);
+  if (is_file)
+    snprintf(path, sizeof path, "%s", name);
+  else
+    snprintf(path, sizeof path, "%s/%s.json", s->cfg.presets_dir, name);
+  char *text = read_file(path, 16u << 20);
+  if (!text) {
+    err->code = PROTO_E_NOT_FOUND;
+    snprintf(err->path, sizeof err->path, "preset");
+    snprintf(err->message, sizeof err->message, "no preset '%.63s' (%.120s: %.40s)", name, path,
+             strerror(errno));
+    return NULL;
+  }
+  cJSON *doc = cJSON_Parse(text);
+  free(text);
+  if (!cJSON_IsObject(doc)) {
+    cJSON_Delete(doc);
+    err->code = PROTO_E_INVALID_PARAMS;
+    snprintf(err->path, sizeof err->path, "preset");
+    snprintf(err->message, sizeof err->message, "preset %.200s is not a JSON object", path);
+    return NULL;
+  }
+  return doc;
+}
+
+scene_entry_t *server_add_scene(server_t *s, const char *name, const char *preset,
+                                scene_error_t *err) {
+  cJSON *doc = NULL;
+  if (preset && preset[0] && !(doc = server_load_preset(s, preset, err)))
+    return NULL;
+  scene_t *sc = scene_create(name, doc, err);
+  cJSON_Delete(doc);
+  if (!sc) {
+    if (preset && preset[0]) {
+      /* The preset itself is broken: say which one. */
+      char inner[256];
+      snprintf(inner, sizeof inner, "%s", err->message);
+      snprintf(err->message, sizeof err->message, "preset '%.40s': %.200s", preset, inner);
+    }
+    return NULL;
+  }
+  scene_entry_t *e = calloc(1, sizeof *e);
+  if (!e) {
+    scene_destroy(sc);
+    err->code = PROTO_E_INTERNAL;
+    snprintf(err->message, sizeof err->message, "out of memory");
+    return NULL;
+  }
+  e->srv = s;
+  e->scene = sc;
+  uv_timer_init(s->loop, &e->play);
+  e->play.data = e;
+  /* A preset saved while playing starts paused: play is always an explicit request. */
+  if (cJSON_IsTrue(cJSON_GetObjectItem(cJSON_GetObjectItem(sc->doc, "sim"), "playing"))) {
+    cJSON *patch = cJSON_Parse("{\"sim\":{\"playing\":false}}");
+    scene_error_t ignored;
+    scene_patch(sc, patch, &ignored);
+    cJSON_Delete(patch);
+  }
+  e->next = s->scenes;
+  s->scenes = e;
+  return e;
+}
+
+static void on_play_closed(uv_handle_t *h) {
+  scene_entry_t *e = h->data;
+  scene_destroy(e->scene);
+  free(e);
+}
+
+void server_remove_scene(server_t *s, scene_entry_t *e) {
+  for (scene_entry_t **p = &s->scenes; *p; p = &(*p)->next)
+    if (*p == e) {
+      *p = e->next;
+      break;
+    }
+  uv_timer_stop(&e->play);
+  uv_close((uv_handle_t *)&e->play, on_play_closed);
+}
+
+static void on_closed_nothing(uv_handle_t *h) {
+  (void)h;
+}
+
+static void on_stop_timeout(uv_timer_t *t) {
+  server_t *s = t->data;
+  if (s->conns)
+    LOG(LOG_WARN, "server", "closing %u connections that did not drain", s->nconns);
+  while (s->conns)
+    conn_close(s->conns);
+  uv_close((uv_handle_t *)t, on_closed_nothing);
+}
+
+/* Runs once, from the idle handle, outside any request callback. */
+static void do_stop(uv_idle_t *idle) {
+  server_t *s = idle->data;
+  uv_idle_stop(idle);
+  uv_close((uv_handle_t *)idle, on_closed_nothing);
+  LOG(LOG_INFO, "server", "stopping");
+  net_stop(s);
+  while (s->scenes)
+    server_remove_scene(s, s->scenes);
+  uv_close((uv_handle_t *)&s->sigint, on_closed_nothing);
+  uv_close((uv_handle_t *)&s->sigterm, on_closed_nothing);
+  /* Answers every queued render; the replies are written before the connections close. */
+  worker_stop(s->worker);
+  s->worker = NULL;
+  uv_timer_init(s->loop, &s->stop_timer);
+  s->stop_timer.data = s;
+  uv_timer_start(&s->stop_timer, on_stop_timeout, 2000, 0);
+  uv_unref((uv_handle_t *)&s->stop_timer);
+}
+
+void server_request_stop(server_t *s) {
+  if (s->stopping)
+    return;
+  s->stopping = 1;
+  uv_idle_init(s->loop, &s->stopper);
+  s->stopper.data = s;
+  uv_idle_start(&s->stopper, do_stop);
+}

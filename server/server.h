@@ -1,0 +1,151 @@
+/*
+ * The server's shared state and the types that cross module boundaries on the loop thread:
+ * connections, the ordered reply queue of each connection, calls in progress, and the
+ * registry of scenes. Everything here is touched only by the libuv loop thread; the render
+ * worker sees only jobs (worker.h).
+ */
+#ifndef VOLFX_SERVER_H
+#define VOLFX_SERVER_H
+
+#include <stdint.h>
+#include <uv.h>
+
+#include "config.h"
+#include "proto.h"
+#include "scene.h"
+#include "stats.h"
+
+typedef struct server server_t;
+typedef struct conn conn_t;
+typedef struct reply reply_t;
+typedef struct call call_t;
+typedef struct sub sub_t;
+typedef struct worker worker_t;
+typedef struct method method_t;
+
+/* One response (or nothing, for a notification) inside a reply. */
+typedef struct reply_part {
+  cJSON *response;    /* NULL for a notification. */
+  unsigned char *att; /* Attachment bytes, owned; NULL when none. */
+  size_t att_len;
+  int done;
+} reply_part_t;
+
+/*
+ * What one request line is answered with: one response, or the array answering a batch.
+ * Replies are queued per connection in arrival order and written only from the head, so
+ * requests are answered in order even when their work finishes out of order.
+ */
+struct reply {
+  reply_t *next;
+  int batch;   /* 1: the parts are written as one JSON array. */
+  int nparts;  /* Requests in the line. */
+  int pending; /* Parts not done yet. */
+  reply_part_t parts[];
+};
+
+struct conn {
+  union {
+    uv_tcp_t tcp;
+    uv_pipe_t pipe;
+  } h;
+  uv_stream_t *stream;
+  uv_timer_t idle;
+  server_t *srv;
+  conn_t *prev, *next;
+  uint64_t id;
+  proto_reader_t reader;
+  reply_t *head, *tail; /* Replies not yet written. */
+  size_t out_bytes;     /* Bytes handed to libuv and not yet written to the socket. */
+  int refs;             /* Open handles + calls in flight + subscriptions. */
+  int closing;          /* No further reads; writes are dropped. */
+  int draining;         /* Close once every reply is written (shutdown, oversize line). */
+  int authed;
+  sub_t *subs;
+  uint64_t requests;
+};
+
+/* A request being served. Handlers finish it exactly once with call_result* or call_error. */
+struct call {
+  server_t *srv;
+  conn_t *conn;
+  reply_t *reply;
+  int part;
+  cJSON *id;     /* A copy of the request's id; NULL for a notification. */
+  cJSON *params; /* Validated params with defaults filled; owned. */
+  const method_t *method;
+  uint64_t t_start_ns;
+};
+
+/* A scene held by the server, with its free-running simulation timer. */
+typedef struct scene_entry {
+  struct scene_entry *next;
+  server_t *srv;
+  scene_t *scene;
+  uv_timer_t play; /* Runs while playing. */
+  double rate;     /* Steps per second while playing. */
+  uint64_t play_start_ns;
+  uint64_t play_steps; /* Steps taken since play_start_ns. */
+  int closing;
+} scene_entry_t;
+
+struct server {
+  uv_loop_t *loop;
+  config_t cfg;
+  uv_tcp_t tcp;
+  uv_pipe_t pipe;
+  int has_tcp, has_pipe;
+  uv_signal_t sigint, sigterm;
+  uv_idle_t stopper;     /* Runs the shutdown once the current callbacks are done. */
+  uv_timer_t stop_timer; /* Closes connections that never drain during a shutdown. */
+  conn_t *conns;
+  unsigned nconns;
+  uint64_t next_conn_id;
+  scene_entry_t *scenes;
+  worker_t *worker;
+  char platform[256], device[256];
+  uint64_t next_sub_id;
+  unsigned nsubs;
+  stats_t stats;
+  int stopping;
+};
+
+/* net.c */
+int net_listen(server_t *s);
+/* Queues 'line' (and 'att', if any) for writing; takes ownership of both (free()). */
+void conn_write(conn_t *c, char *line, size_t len, unsigned char *att, size_t att_len);
+/* Closes a connection at once, dropping unwritten output. */
+void conn_close(conn_t *c);
+/* Writes every reply at the head of the queue that is complete. */
+void conn_flush_replies(conn_t *c);
+void conn_unref(conn_t *c);
+/* Stops accepting and reading; closes every connection once its replies are written. */
+void net_stop(server_t *s);
+
+/* dispatch.c */
+/* Handles one complete request line from 'c'. */
+void dispatch_line(conn_t *c, char *line, size_t len);
+/* Finishes 'call' with 'result' (taken). */
+void call_result(call_t *call, cJSON *result);
+/* Finishes 'call' with 'result' (taken) and binary data (taken), as an attachment or, when
+ * 'base64' is set, as result.data. Adds result.attachment. */
+void call_result_bytes(call_t *call, cJSON *result, unsigned char *bytes, size_t n,
+                       const char *format, uint32_t width, uint32_t height, int base64);
+/* Finishes 'call' with an error; 'path' may be NULL. The message is printf-formatted. */
+void call_error(call_t *call, int code, const char *path, const char *fmt, ...)
+    __attribute__((format(printf, 4, 5)));
+
+/* server.c: the scene registry and the life cycle. */
+scene_entry_t *server_find_scene(server_t *s, const char *name);
+/* Adds a scene; 'preset' as in scene.create. Returns NULL with 'err' set. */
+scene_entry_t *server_add_scene(server_t *s, const char *name, const char *preset,
+                                scene_error_t *err);
+void server_remove_scene(server_t *s, scene_entry_t *e);
+/* Loads a preset by name (presets_dir/NAME.json) or a file path. NULL with 'err' set. */
+cJSON *server_load_preset(server_t *s, const char *name, scene_error_t *err);
+/* Starts the graceful stop from any loop callback. */
+void server_request_stop(server_t *s);
+/* Monotonic nanoseconds. */
+uint64_t now_ns(void);
+
+#endif

@@ -1,0 +1,46 @@
+/*
+ * The render worker: one thread that owns the renderer (and so the OpenCL queue) and runs
+ * render jobs in order. Jobs are submitted from the loop thread; each finished job's 'done'
+ * callback runs back on the loop thread, woken by a uv_async handle. The loop never waits on
+ * the worker.
+ */
+#ifndef VOLFX_WORKER_H
+#define VOLFX_WORKER_H
+
+#include <uv.h>
+
+#include "render.h"
+
+typedef struct job job_t;
+typedef struct worker worker_t;
+
+struct job {
+  job_t *next;
+  render_scene_t *scene; /* A reference, dropped by the worker when the job is done. */
+  render_params_t params;
+  rcamera_t camera; /* Used when 'has_camera'; params.camera points here. */
+  int has_camera;
+  uint64_t frame; /* The snapshot's simulation frame and time. */
+  double time;
+  render_output_t out; /* Filled by the worker; out.bytes belongs to the 'done' callback. */
+  int code;            /* 0 or a PROTO_E_* code. */
+  char err[512];
+  uint64_t t_queued_ns, t_started_ns, t_done_ns;
+  void (*done)(job_t *j); /* Runs on the loop thread; frees the job. */
+  void *ctx;
+};
+
+/* Starts the worker thread, which takes ownership of 'r'. Returns NULL on failure. */
+worker_t *worker_start(uv_loop_t *loop, renderer_t *r, int max_queue);
+/* Queues 'j'. Returns 0, or -1 when 'max_queue' jobs are already waiting. */
+int worker_submit(worker_t *w, job_t *j);
+/* Jobs waiting, not counting the one running. */
+int worker_queue_depth(worker_t *w);
+/*
+ * Finishes the running job, fails the waiting ones with PROTO_E_BUSY ("shutting down"), runs
+ * every 'done' callback, joins the thread, destroys the renderer and closes the async handle.
+ * Must be called on the loop thread; the loop must run afterwards for the handle to close.
+ */
+void worker_stop(worker_t *w);
+
+#endif
