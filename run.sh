@@ -1,0 +1,71 @@
+#!/usr/bin/env bash
+# volfx quick start.
+#   ./run.sh          install missing packages, build, render out/demo.png, run volfxd on
+#                     127.0.0.1:7878 with the demo scene until Ctrl-C
+#   ./run.sh test     install, build, run the whole test suite (ctest)
+#   ./run.sh asan     the same suite in a separate AddressSanitizer + UBSan build
+set -euo pipefail
+cd "$(dirname "$0")"
+
+packages=(build-essential cmake pkg-config libuv1-dev libcjson-dev libpng-dev
+          ocl-icd-opencl-dev opencl-headers pocl-opencl-icd python3)
+
+install_missing() {
+  local missing=()
+  for p in "${packages[@]}"; do
+    dpkg-query -W -f='${Status}' "$p" 2>/dev/null | grep -q "install ok installed" || missing+=("$p")
+  done
+  [ ${#missing[@]} -eq 0 ] && return 0
+  echo "run.sh: installing ${missing[*]}"
+  local sudo=()
+  [ "$(id -u)" -eq 0 ] || sudo=(sudo)
+  "${sudo[@]}" apt-get update -q
+  DEBIAN_FRONTEND=noninteractive "${sudo[@]}" apt-get install -y -q --no-install-recommends "${missing[@]}"
+}
+
+build() { # build DIR [cmake args...]
+  local dir=$1; shift
+  cmake -S . -B "$dir" -DCMAKE_BUILD_TYPE=RelWithDebInfo "$@" >/dev/null
+  cmake --build "$dir" -j "$(nproc)"
+}
+
+run_tests() { # run_tests DIR
+  (cd "$1" && ctest --output-on-failure --timeout 900 -j 1)
+}
+
+mode=${1:-run}
+install_missing
+case "$mode" in
+  test)
+    build build
+    run_tests build
+    ;;
+  asan)
+    build build-asan -DVOLFX_SANITIZE=ON
+    export ASAN_OPTIONS=detect_leaks=1:abort_on_error=0:detect_odr_violation=0
+    export UBSAN_OPTIONS=print_stacktrace=1:halt_on_error=1
+    export LSAN_OPTIONS=suppressions=$PWD/tests/lsan.supp:print_suppressions=0
+    run_tests build-asan
+    ;;
+  run)
+    build build
+    mkdir -p out data
+    log=$(mktemp)
+    build/bin/volfxd --listen 127.0.0.1:7878 --scene demo --data data >"$log" &
+    pid=$!
+    trap 'kill -INT $pid 2>/dev/null; wait $pid; rm -f "$log"' INT TERM
+    for _ in $(seq 1 300); do
+      grep -q "listening" "$log" && break
+      kill -0 $pid 2>/dev/null || { echo "run.sh: volfxd failed to start"; exit 1; }
+      sleep 0.05
+    done
+    cat "$log"
+    build/bin/volfx render -o out/demo.png -W 960 -H 540
+    echo "run.sh: wrote out/demo.png; volfxd is serving on 127.0.0.1:7878 (Ctrl-C stops it)"
+    wait $pid
+    ;;
+  *)
+    echo "usage: ./run.sh [test|asan]" >&2
+    exit 2
+    ;;
+esac
