@@ -1,1 +1,32 @@
-/* placeholder */
+/*
+ * Reference counting of compiled scenes. A snapshot is shared between the loop thread (the
+ * scene's current one) and any render jobs still reading it, so the count is atomic and the
+ * last holder frees the objects and drops the mesh references they hold.
+ */
+/* render_scene.h uses size_t without including <stddef.h>; until it does, this comes first. */
+#include <stddef.h>
+#include <stdlib.h>
+
+#include "render_scene.h"
+
+render_scene_t *render_scene_ref(render_scene_t *s) {
+  /* Taking a reference needs no ordering: the caller already holds one, which keeps 's'
+   * alive and its contents visible. */
+  if (s)
+    atomic_fetch_add_explicit(&s->refs, 1, memory_order_relaxed);
+  return s;
+}
+
+void render_scene_unref(render_scene_t *s) {
+  if (!s)
+    return;
+  /* Release so this thread's reads of 's' happen before the free; acquire so the freeing
+   * thread sees every other holder's. */
+  if (atomic_fetch_sub_explicit(&s->refs, 1, memory_order_acq_rel) != 1)
+    return;
+  for (int i = 0; i < s->nobjects; i++)
+    if (s->objects[i].mesh)
+      mesh_unref(s->objects[i].mesh);
+  free(s->objects);
+  free(s);
+}

@@ -1,1 +1,656 @@
-/* placeholder */
+/*
+ * Scenes: the JSON document a client edits and the immutable snapshot the renderer reads.
+ * Every change (merge patch, set at a path, whole replacement) is made on a copy of the
+ * document, which is validated against scene_schema, checked across fields and compiled into
+ * a new render_scene_t; only when all of that succeeds do the copy and the snapshot replace
+ * the scene's, so a failed change leaves the document, the version and the snapshot exactly as
+ * they were. Mesh files are resolved under the data directory and kept in a small cache keyed
+ * by resolved path, inode, size and mtime, so patches that keep a mesh do not reload it.
+ */
+#include "scene.h"
+
+#include <limits.h>
+#include <math.h>
+#include <pthread.h>
+#include <stdarg.h>
+#include <stdio.h>
+#include <stdlib.h>
+#include <string.h>
+#include <sys/stat.h>
+
+#include "proto.h"
+
+/* Shortest distance between eye and target, relative to their magnitude: below this the
+ * single-precision view direction the kernels compute is noise. */
+#define EYE_TARGET_EPS 1e-6
+/* Smallest sine of the angle between camera.up and the view direction (about 0.06 degrees). */
+#define UP_PARALLEL_EPS 1e-3
+
+static char *g_data_dir; /* Owned copy of the directory mesh files live under, or NULL. */
+
+/* One loaded mesh. The cache holds one reference; snapshots hold their own. */
+typedef struct mesh_entry {
+  char *path; /* Resolved (real) path. */
+  dev_t dev;
+  ino_t ino;
+  off_t size;
+  struct timespec mtime;
+  mesh_t *mesh;
+  struct mesh_entry *next;
+} mesh_entry_t;
+
+/* Scenes live on the loop thread, but the cache is global state and a lock costs nothing
+ * next to loading a file, so it is guarded anyway. */
+static pthread_mutex_t g_cache_lock = PTHREAD_MUTEX_INITIALIZER;
+static mesh_entry_t *g_cache;
+
+static int set_err(scene_error_t *err, int code, const char *path, const char *fmt, ...) {
+  if (!err)
+    return -1;
+  err->code = code;
+  snprintf(err->path, sizeof err->path, "%s", path ? path : "");
+  va_list ap;
+  va_start(ap, fmt);
+  vsnprintf(err->message, sizeof err->message, fmt, ap);
+  va_end(ap);
+  return -1;
+}
+
+static void clear_err(scene_error_t *err) {
+  if (err) {
+    err->code = 0;
+    err->path[0] = '\0';
+    err->message[0] = '\0';
+  }
+}
+
+void scene_set_data_dir(const char *dir) {
+  free(g_data_dir);
+  g_data_dir = dir ? strdup(dir) : NULL;
+}
+
+/* Member 'name' of 'obj', case-sensitively; the validated document always has it. */
+static cJSON *get(const cJSON *obj, const char *name) {
+  return cJSON_GetObjectItemCaseSensitive(obj, name);
+}
+
+static void vec3d(const cJSON *a, double out[3]) {
+  int i = 0;
+  out[0] = out[1] = out[2] = 0;
+  for (const cJSON *it = a ? a->child : NULL; it && i < 3; it = it->next)
+    out[i++] = it->valuedouble;
+}
+
+static void vec3f(const cJSON *a, float out[3]) {
+  double d[3];
+  vec3d(a, d);
+  for (int i = 0; i < 3; i++)
+    out[i] = (float)d[i];
+}
+
+/* ---- Mesh files ---- */
+
+/* True when 'file' is a relative path none of whose components is "..". */
+static int path_is_tame(const char *file) {
+  if (file[0] == '/')
+    return 0;
+  for (const char *p = file; *p;) {
+    const char *slash = strchr(p, '/');
+    size_t n = slash ? (size_t)(slash - p) : strlen(p);
+    if (n == 2 && p[0] == '.' && p[1] == '.')
+      return 0;
+    if (!slash)
+      break;
+    p = slash + 1;
+  }
+  return 1;
+}
+
+/*
+ * Resolves mesh file 'file' of the object at 'path' ("objects.3.file") to a real path under
+ * the data directory, in 'out' (PATH_MAX bytes), with its stat in 'st'. The lexical checks
+ * refuse what a client could mean as an escape; realpath() then catches symbolic links that
+ * lead outside.
+ */
+static int resolve_mesh(const char *file, const char *path, char *out, struct stat *st,
+                        scene_error_t *err) {
+  if (!g_data_dir)
+    return set_err(err, PROTO_E_INVALID_PARAMS, path,
+                   "%s: mesh files are unavailable: the server has no data directory", path);
+  if (!path_is_tame(file))
+    return set_err(err, PROTO_E_INVALID_PARAMS, path,
+                   "%s: \"%.64s\" must be a relative path inside the data directory, without "
+                   "\"..\"",
+                   path, file);
+  char root[PATH_MAX], joined[PATH_MAX];
+  if (!realpath(g_data_dir, root))
+    return set_err(err, PROTO_E_INVALID_PARAMS, path,
+                   "%s: mesh files are unavailable: the data directory does not exist", path);
+  if (snprintf(joined, sizeof joined, "%s/%s", root, file) >= (int)sizeof joined)
+    return set_err(err, PROTO_E_INVALID_PARAMS, path, "%s: the path is too long", path);
+  if (!realpath(joined, out))
+    return set_err(err, PROTO_E_INVALID_PARAMS, path, "%s: \"%.64s\" not found", path, file);
+  size_t n = strlen(root);
+  if (strncmp(out, root, n) != 0 || (out[n] != '/' && !(n == 1 && root[0] == '/')))
+    return set_err(err, PROTO_E_INVALID_PARAMS, path,
+                   "%s: \"%.64s\" leads outside the data directory", path, file);
+  if (stat(out, st) != 0 || !S_ISREG(st->st_mode))
+    return set_err(err, PROTO_E_INVALID_PARAMS, path, "%s: \"%.64s\" is not a regular file", path,
+                   file);
+  return 0;
+}
+
+static void entry_free(mesh_entry_t *e) {
+  mesh_unref(e->mesh);
+  free(e->path);
+  free(e);
+}
+
+/* Drops cache entries that no snapshot uses any more. A mesh whose only reference is the
+ * cache's cannot gain another except through the cache, and the lock is held, so reading the
+ * count is enough. */
+static void cache_prune(void) {
+  pthread_mutex_lock(&g_cache_lock);
+  for (mesh_entry_t **pp = &g_cache; *pp;) {
+    mesh_entry_t *e = *pp;
+    if (atomic_load(&e->mesh->refs) <= 1) {
+      *pp = e->next;
+      entry_free(e);
+    } else {
+      pp = &e->next;
+    }
+  }
+  pthread_mutex_unlock(&g_cache_lock);
+}
+
+/* Replaces the absolute 'real' path in a loader message by the client's 'file', so errors do
+ * not reveal where the data directory lives. */
+static void scrub_message(char *msg, size_t len, const char *real, const char *file) {
+  char *at = strstr(msg, real);
+  if (!at)
+    return;
+  char tail[256];
+  snprintf(tail, sizeof tail, "%s", at + strlen(real));
+  snprintf(at, len - (size_t)(at - msg), "%s%s", file, tail);
+}
+
+/* A counted reference to the mesh of 'file' for the object at 'path', loaded or cached. */
+static mesh_t *mesh_get(const char *file, const char *path, scene_error_t *err) {
+  char real[PATH_MAX];
+  struct stat st;
+  if (resolve_mesh(file, path, real, &st, err) != 0)
+    return NULL;
+  pthread_mutex_lock(&g_cache_lock);
+  mesh_t *m = NULL;
+  for (mesh_entry_t **pp = &g_cache; *pp; pp = &(*pp)->next) {
+    mesh_entry_t *e = *pp;
+    if (strcmp(e->path, real) != 0)
+      continue;
+    if (e->dev == st.st_dev && e->ino == st.st_ino && e->size == st.st_size &&
+        e->mtime.tv_sec == st.st_mtim.tv_sec && e->mtime.tv_nsec == st.st_mtim.tv_nsec) {
+      m = mesh_ref(e->mesh);
+    } else {
+      /* The file changed on disk; snapshots keep the old mesh, new ones load the new file. */
+      *pp = e->next;
+      entry_free(e);
+    }
+    break;
+  }
+  if (!m) {
+    char why[256] = "";
+    m = mesh_load_obj(real, why, sizeof why);
+    if (!m) {
+      pthread_mutex_unlock(&g_cache_lock);
+      scrub_message(why, sizeof why, real, file);
+      set_err(err, PROTO_E_INVALID_PARAMS, path, "%s: %s", path,
+              why[0] ? why : "cannot load the mesh");
+      return NULL;
+    }
+    mesh_entry_t *e = calloc(1, sizeof *e);
+    if (e && (e->path = strdup(real))) {
+      e->dev = st.st_dev;
+      e->ino = st.st_ino;
+      e->size = st.st_size;
+      e->mtime = st.st_mtim;
+      e->mesh = mesh_ref(m);
+      e->next = g_cache;
+      g_cache = e;
+    } else {
+      free(e); /* Not cached: the snapshot still gets the mesh. */
+    }
+  }
+  pthread_mutex_unlock(&g_cache_lock);
+  return m;
+}
+
+/* ---- Validation and compilation ---- */
+
+static double norm3(const double v[3]) {
+  return sqrt(v[0] * v[0] + v[1] * v[1] + v[2] * v[2]);
+}
+
+/* The checks that involve more than one field, on a document that passed the schema. */
+static int check_cross(const cJSON *doc, scene_error_t *err) {
+  const cJSON *cam = get(doc, "camera");
+  double eye[3], target[3], up[3], fwd[3];
+  vec3d(get(cam, "eye"), eye);
+  vec3d(get(cam, "target"), target);
+  vec3d(get(cam, "up"), up);
+  for (int i = 0; i < 3; i++)
+    fwd[i] = target[i] - eye[i];
+  double flen = norm3(fwd);
+  double scale = fmax(1.0, fmax(norm3(eye), norm3(target)));
+  if (!(flen > EYE_TARGET_EPS * scale))
+    return set_err(err, PROTO_E_INVALID_PARAMS, "camera.target",
+                   "camera.target: must differ from camera.eye");
+  double ulen = norm3(up);
+  if (ulen == 0)
+    return set_err(err, PROTO_E_INVALID_PARAMS, "camera.up",
+                   "camera.up: must not be the zero vector");
+  double c[3] = {fwd[1] * up[2] - fwd[2] * up[1], fwd[2] * up[0] - fwd[0] * up[2],
+                 fwd[0] * up[1] - fwd[1] * up[0]};
+  if (!(norm3(c) > UP_PARALLEL_EPS * flen * ulen))
+    return set_err(err, PROTO_E_INVALID_PARAMS, "camera.up",
+                   "camera.up: must not be parallel to the view direction (target - eye)");
+  double near_ = get(cam, "near")->valuedouble, far_ = get(cam, "far")->valuedouble;
+  if (!(near_ < far_))
+    return set_err(err, PROTO_E_INVALID_PARAMS, "camera.far",
+                   "camera.far: %g must be greater than camera.near (%g)", far_, near_);
+
+  const cJSON *objs = get(doc, "objects");
+  int i = 0;
+  for (const cJSON *o = objs->child; o; o = o->next, i++) {
+    char p[64];
+    const cJSON *file = get(o, "file");
+    if (strcmp(get(o, "shape")->valuestring, "mesh") == 0 && (!file || !file->valuestring[0])) {
+      snprintf(p, sizeof p, "objects.%d.file", i);
+      return set_err(err, PROTO_E_INVALID_PARAMS, p,
+                     "%s: a mesh object needs a file (an OBJ path under the data directory)", p);
+    }
+    const char *id = get(o, "id")->valuestring;
+    if (!id[0])
+      continue;
+    /* Quadratic, but there are at most 1024 objects and ids are short. */
+    int j = 0;
+    for (const cJSON *q = objs->child; q != o; q = q->next, j++) {
+      if (strcmp(get(q, "id")->valuestring, id) == 0) {
+        snprintf(p, sizeof p, "objects.%d.id", i);
+        return set_err(err, PROTO_E_INVALID_PARAMS, p, "%s: \"%s\" is already the id of objects.%d",
+                       p, id, j);
+      }
+    }
+  }
+  return 0;
+}
+
+static shape_t shape_of(const char *s) {
+  static const char *const names[] = {"box", "sphere", "tetrahedron", "plane", "mesh"};
+  for (int i = 0; i < 5; i++)
+    if (strcmp(s, names[i]) == 0)
+      return (shape_t)i;
+  return SHAPE_BOX;
+}
+
+static tone_map_t tone_map_of(const char *s) {
+  if (strcmp(s, "none") == 0)
+    return TONE_NONE;
+  if (strcmp(s, "reinhard") == 0)
+    return TONE_REINHARD;
+  return TONE_ACES;
+}
+
+/* Builds the snapshot of a validated document, loading meshes; NULL with 'err' set. */
+static render_scene_t *compile(const cJSON *doc, scene_error_t *err) {
+  render_scene_t *rs = calloc(1, sizeof *rs);
+  if (!rs) {
+    set_err(err, PROTO_E_INTERNAL, "", "out of memory");
+    return NULL;
+  }
+  atomic_init(&rs->refs, 1);
+  const cJSON *cam = get(doc, "camera");
+  vec3f(get(cam, "eye"), rs->camera.eye);
+  vec3f(get(cam, "target"), rs->camera.target);
+  vec3f(get(cam, "up"), rs->camera.up);
+  rs->camera.fov_y = (float)get(cam, "fov_y")->valuedouble;
+  rs->camera.near_ = (float)get(cam, "near")->valuedouble;
+  rs->camera.far_ = (float)get(cam, "far")->valuedouble;
+  vec3f(get(doc, "background"), rs->background);
+
+  const cJSON *light = get(doc, "light");
+  double dir[3];
+  vec3d(get(light, "direction"), dir);
+  double dlen = norm3(dir);
+  for (int i = 0; i < 3; i++)
+    rs->light.direction[i] = (float)(dir[i] / dlen);
+  vec3f(get(light, "color"), rs->light.color);
+  rs->light.intensity = (float)get(light, "intensity")->valuedouble;
+  rs->light.ambient = (float)get(light, "ambient")->valuedouble;
+  rs->light.shadow_map = (int)get(light, "shadow_map")->valuedouble;
+
+  const cJSON *render = get(doc, "render");
+  rs->exposure = (float)get(render, "exposure")->valuedouble;
+  rs->tone_map = tone_map_of(get(render, "tone_map")->valuestring);
+  rs->transparent_background = cJSON_IsTrue(get(render, "transparent_background"));
+
+  const cJSON *sim = get(doc, "sim");
+  rs->frame = (uint64_t)get(sim, "frame")->valuedouble;
+  rs->time = get(sim, "time")->valuedouble;
+
+  const cJSON *objs = get(doc, "objects");
+  int n = cJSON_GetArraySize(objs);
+  if (n > 0) {
+    rs->objects = calloc((size_t)n, sizeof *rs->objects);
+    if (!rs->objects) {
+      render_scene_unref(rs);
+      set_err(err, PROTO_E_INTERNAL, "", "out of memory");
+      return NULL;
+    }
+  }
+  int i = 0;
+  for (const cJSON *o = objs->child; o; o = o->next, i++) {
+    robject_t *ro = &rs->objects[i];
+    ro->shape = shape_of(get(o, "shape")->valuestring);
+    vec3f(get(o, "position"), ro->position);
+    vec3f(get(o, "scale"), ro->scale);
+    vec3f(get(o, "rotation"), ro->rotation);
+    vec3f(get(o, "color"), ro->color);
+    /* Counted as it goes, so that unref frees exactly the meshes taken so far on failure. */
+    rs->nobjects = i + 1;
+    if (ro->shape == SHAPE_MESH) {
+      char p[64];
+      snprintf(p, sizeof p, "objects.%d.file", i);
+      ro->mesh = mesh_get(get(o, "file")->valuestring, p, err);
+      if (!ro->mesh) {
+        render_scene_unref(rs);
+        return NULL;
+      }
+    }
+  }
+  return rs;
+}
+
+/* Validates 'doc' in place (defaults, normalisation), checks it across fields and compiles it.
+ * Returns the new snapshot, or NULL with 'err' set. */
+static render_scene_t *prepare(cJSON *doc, scene_error_t *err) {
+  sch_error_t se;
+  if (sch_validate(&scene_schema, doc, "", &se) != 0) {
+    set_err(err, PROTO_E_INVALID_PARAMS, se.path, "%s", se.message);
+    return NULL;
+  }
+  if (check_cross(doc, err) != 0)
+    return NULL;
+  return compile(doc, err);
+}
+
+/* Makes 'doc' (owned, taken in every case) the scene's document if it is valid. */
+static int commit(scene_t *s, cJSON *doc, scene_error_t *err) {
+  render_scene_t *rs = prepare(doc, err);
+  if (!rs) {
+    cJSON_Delete(doc);
+    cache_prune();
+    return -1;
+  }
+  cJSON_Delete(s->doc);
+  s->doc = doc;
+  render_scene_unref(s->snapshot);
+  s->snapshot = rs;
+  s->version++;
+  cache_prune();
+  return 0;
+}
+
+/* ---- Public API ---- */
+
+scene_t *scene_create(const char *name, const cJSON *preset, scene_error_t *err) {
+  clear_err(err);
+  if (!name || strlen(name) >= sizeof((scene_t *)0)->name) {
+    set_err(err, PROTO_E_INVALID_PARAMS, "name", "name: must be 1 to 63 bytes");
+    return NULL;
+  }
+  if (preset && !cJSON_IsObject(preset)) {
+    set_err(err, PROTO_E_INVALID_PARAMS, "", "a scene document must be a JSON object");
+    return NULL;
+  }
+  scene_t *s = calloc(1, sizeof *s);
+  cJSON *doc = preset ? cJSON_Duplicate(preset, 1) : cJSON_CreateObject();
+  if (!s || !doc) {
+    free(s);
+    cJSON_Delete(doc);
+    set_err(err, PROTO_E_INTERNAL, "", "out of memory");
+    return NULL;
+  }
+  snprintf(s->name, sizeof s->name, "%s", name);
+  /* The first commit takes the version from 0 to 1, what scene.list shows for a new scene. */
+  if (commit(s, doc, err) != 0) {
+    free(s);
+    return NULL;
+  }
+  return s;
+}
+
+void scene_destroy(scene_t *s) {
+  if (!s)
+    return;
+  render_scene_unref(s->snapshot);
+  cJSON_Delete(s->doc);
+  free(s);
+  cache_prune();
+}
+
+cJSON *scene_get(const scene_t *s, const char *path, scene_error_t *err) {
+  clear_err(err);
+  cJSON *v = sch_path_get(s->doc, path);
+  if (!v) {
+    set_err(err, PROTO_E_NOT_FOUND, path, "no such path in the scene: %s", path);
+    return NULL;
+  }
+  cJSON *copy = cJSON_Duplicate(v, 1);
+  if (!copy)
+    set_err(err, PROTO_E_INTERNAL, path ? path : "", "out of memory");
+  return copy;
+}
+
+/*
+ * RFC 7386 on 'target' (an object, modified in place) from 'patch' (an object): a null member
+ * removes the target's member, an object member merges recursively into an object (replacing
+ * a non-object), and anything else, arrays included, replaces the member whole. Returns -1 on
+ * OOM, leaving 'target' partly patched (the caller discards it).
+ */
+static int merge_patch(cJSON *target, const cJSON *patch) {
+  for (const cJSON *p = patch->child; p; p = p->next) {
+    cJSON *t = cJSON_GetObjectItemCaseSensitive(target, p->string);
+    if (cJSON_IsNull(p)) {
+      if (t)
+        cJSON_DeleteItemFromObjectCaseSensitive(target, p->string);
+      continue;
+    }
+    if (cJSON_IsObject(p)) {
+      if (!cJSON_IsObject(t)) {
+        cJSON *o = cJSON_CreateObject();
+        if (!o)
+          return -1;
+        /* The *InObject* forms give the new item its key; ViaPointer would leave it nameless. */
+        cJSON_bool linked = t ? cJSON_ReplaceItemInObjectCaseSensitive(target, p->string, o)
+                              : cJSON_AddItemToObject(target, p->string, o);
+        if (!linked) {
+          cJSON_Delete(o);
+          return -1;
+        }
+        t = o;
+      }
+      if (merge_patch(t, p) != 0)
+        return -1;
+      continue;
+    }
+    cJSON *v = cJSON_Duplicate(p, 1);
+    if (!v)
+      return -1;
+    cJSON_bool linked = t ? cJSON_ReplaceItemInObjectCaseSensitive(target, p->string, v)
+                          : cJSON_AddItemToObject(target, p->string, v);
+    if (!linked) {
+      cJSON_Delete(v);
+      return -1;
+    }
+  }
+  return 0;
+}
+
+/*
+ * Applies merge patch 'patch' to the scene. A member set to null is deleted and, the document
+ * being validated afterwards, comes back with its default: {"camera": {"fov_y": null}} resets
+ * the field of view, {"camera": null} the whole camera. Arrays are replaced whole, so an
+ * object inside "objects" is changed by sending the whole array (or with scene_set_path).
+ */
+int scene_patch(scene_t *s, const cJSON *patch, scene_error_t *err) {
+  clear_err(err);
+  if (!cJSON_IsObject(patch))
+    return set_err(err, PROTO_E_INVALID_PARAMS, "", "a patch must be a JSON object");
+  cJSON *doc = cJSON_Duplicate(s->doc, 1);
+  if (!doc || merge_patch(doc, patch) != 0) {
+    cJSON_Delete(doc);
+    return set_err(err, PROTO_E_INTERNAL, "", "out of memory");
+  }
+  return commit(s, doc, err);
+}
+
+/*
+ * Sets 'value' at 'path'. The parent of the last component must exist; under an object the
+ * member is replaced or added (a name the schema does not know is then refused as invalid),
+ * under an array the index must be below the length, or equal to it to append. Setting an
+ * object member to null deletes it, so it gets its default back, as in a merge patch. The
+ * empty path is refused: the whole document changes through scene_patch or scene_replace.
+ */
+int scene_set_path(scene_t *s, const char *path, const cJSON *value, scene_error_t *err) {
+  clear_err(err);
+  if (!path || !path[0])
+    return set_err(err, PROTO_E_INVALID_PARAMS, "",
+                   "a path must name a member of the scene (use a patch for the whole scene)");
+  if (!value)
+    return set_err(err, PROTO_E_INVALID_PARAMS, path, "%s: a value is required", path);
+  char parent_path[256];
+  if (strlen(path) >= sizeof parent_path)
+    return set_err(err, PROTO_E_NOT_FOUND, path, "no such path in the scene: %.200s", path);
+  snprintf(parent_path, sizeof parent_path, "%s", path);
+  char *dot = strrchr(parent_path, '.');
+  const char *last = dot ? dot + 1 : parent_path;
+  if (dot)
+    *dot = '\0';
+  if (!last[0])
+    return set_err(err, PROTO_E_NOT_FOUND, path, "no such path in the scene: %s", path);
+
+  cJSON *doc = cJSON_Duplicate(s->doc, 1);
+  cJSON *v = cJSON_Duplicate(value, 1);
+  if (!doc || !v) {
+    cJSON_Delete(doc);
+    cJSON_Delete(v);
+    return set_err(err, PROTO_E_INTERNAL, "", "out of memory");
+  }
+  cJSON *parent = dot ? sch_path_get(doc, parent_path) : doc;
+  int ok = 0;
+  if (cJSON_IsObject(parent)) {
+    cJSON *old = cJSON_GetObjectItemCaseSensitive(parent, last);
+    if (cJSON_IsNull(v)) {
+      cJSON_Delete(v);
+      if (old)
+        cJSON_DeleteItemFromObjectCaseSensitive(parent, last);
+      ok = 1;
+    } else if (old) {
+      ok = cJSON_ReplaceItemInObjectCaseSensitive(parent, last, v);
+    } else {
+      ok = cJSON_AddItemToObject(parent, last, v);
+    }
+  } else if (cJSON_IsArray(parent)) {
+    /* sch_path_get with the full path accepts exactly the indices that exist. */
+    cJSON *old = sch_path_get(doc, path);
+    int n = cJSON_GetArraySize(parent);
+    char index[16];
+    snprintf(index, sizeof index, "%d", n);
+    if (old)
+      ok = cJSON_ReplaceItemViaPointer(parent, old, v);
+    else if (strcmp(last, index) == 0)
+      ok = cJSON_AddItemToArray(parent, v);
+    else
+      ok = -1;
+  } else {
+    ok = -1;
+  }
+  if (ok != 1) {
+    cJSON_Delete(doc);
+    cJSON_Delete(v);
+    if (ok == -1)
+      return set_err(err, PROTO_E_NOT_FOUND, path, "no such path in the scene: %s", path);
+    return set_err(err, PROTO_E_INTERNAL, "", "out of memory");
+  }
+  return commit(s, doc, err);
+}
+
+int scene_replace(scene_t *s, const cJSON *doc, scene_error_t *err) {
+  clear_err(err);
+  if (!cJSON_IsObject(doc))
+    return set_err(err, PROTO_E_INVALID_PARAMS, "", "a scene document must be a JSON object");
+  cJSON *copy = cJSON_Duplicate(doc, 1);
+  if (!copy)
+    return set_err(err, PROTO_E_INTERNAL, "", "out of memory");
+  return commit(s, copy, err);
+}
+
+/* A new snapshot equal to 'old' but for the clock; the renderer may still hold 'old', so it is
+ * copied rather than changed. NULL on OOM. */
+static render_scene_t *snapshot_with_clock(const render_scene_t *old, uint64_t frame, double time) {
+  render_scene_t *rs = malloc(sizeof *rs);
+  if (!rs)
+    return NULL;
+  memcpy(rs, old, sizeof *rs);
+  atomic_init(&rs->refs, 1);
+  rs->objects = NULL;
+  if (old->nobjects > 0) {
+    rs->objects = malloc((size_t)old->nobjects * sizeof *rs->objects);
+    if (!rs->objects) {
+      free(rs);
+      return NULL;
+    }
+    memcpy(rs->objects, old->objects, (size_t)old->nobjects * sizeof *rs->objects);
+    for (int i = 0; i < rs->nobjects; i++)
+      if (rs->objects[i].mesh)
+        mesh_ref(rs->objects[i].mesh);
+  }
+  rs->frame = frame;
+  rs->time = time;
+  return rs;
+}
+
+/*
+ * Advances the clock by 'steps' steps of 'dt' seconds, in the document and in a fresh
+ * snapshot. The clock is not an edit, so 'version' is left alone: it counts changes made by
+ * clients. Both values stop at the schema's maxima so the document stays valid. Should memory
+ * run out, the old snapshot (with the old clock) stays in place.
+ */
+void scene_advance(scene_t *s, unsigned steps, double dt) {
+  if (steps == 0 || !(dt > 0) || !isfinite(dt))
+    return;
+  const sch_field_t *ft = sch_path_field(&scene_schema, "sim.time");
+  const sch_field_t *ff = sch_path_field(&scene_schema, "sim.frame");
+  cJSON *sim = get(s->doc, "sim");
+  cJSON *jt = get(sim, "time"), *jf = get(sim, "frame");
+  double t = fmin(jt->valuedouble + steps * dt, ft->max);
+  double f = fmin(jf->valuedouble + steps, ff->max);
+  cJSON_SetNumberValue(jt, t);
+  cJSON_SetNumberValue(jf, f);
+  render_scene_t *rs = snapshot_with_clock(s->snapshot, (uint64_t)f, t);
+  if (rs) {
+    render_scene_unref(s->snapshot);
+    s->snapshot = rs;
+  }
+}
+
+double scene_dt(const scene_t *s) {
+  return get(get(s->doc, "sim"), "dt")->valuedouble;
+}
+
+double scene_time(const scene_t *s) {
+  return get(get(s->doc, "sim"), "time")->valuedouble;
+}
+
+double scene_frame(const scene_t *s) {
+  return get(get(s->doc, "sim"), "frame")->valuedouble;
+}

@@ -1,1 +1,253 @@
-/* placeholder */
+/*
+ * The scene document's schema (SPEC §4): every field a client can set, with its default,
+ * range, unit and one sentence of documentation. scene.c validates documents against it and
+ * rpc.discover publishes it as components.schemas.Scene. The defaults make a scene with no
+ * objects look deliberate: a camera a little above the origin looking slightly down, a dark
+ * blue-grey background and a warm key light from the upper right, in front of the scene.
+ *
+ * World coordinates are bounded at ±1e6 so that single-precision kernels keep millimetre
+ * precision over the whole range; colours are linear RGB, up to 1000 to allow emitters.
+ */
+#include "scene.h"
+
+#define WORLD 1e6                 /* Largest world coordinate accepted. */
+#define TWO_53 9007199254740992.0 /* 2^53: every integer up to here is exact in a double. */
+
+static const double v_zero[3] = {0, 0, 0};
+static const double v_one[3] = {1, 1, 1};
+static const double v_up[3] = {0, 1, 0};
+static const double cam_eye[3] = {0, 2, 8};
+static const double cam_target[3] = {0, 0.5, 0};
+/* Linear values; after the default ACES tone map this is about sRGB (59, 66, 85). */
+static const double bg_color[3] = {0.05, 0.06, 0.08};
+/* Up, to the right (+x) and towards the default camera (+z); normalised on validation. */
+static const double light_dir[3] = {0.5, 1.0, 0.6};
+static const double light_color[3] = {1.0, 0.96, 0.9};
+static const double obj_color[3] = {0.8, 0.8, 0.8};
+
+static const char *const shapes[] = {"box", "sphere", "tetrahedron", "plane", "mesh", NULL};
+static const char *const tone_maps[] = {"none", "reinhard", "aces", NULL};
+
+static const sch_field_t camera_fields[] = {
+    {.name = "eye",
+     .type = SCH_VEC3,
+     .desc = "Position of the camera.",
+     .unit = "world units",
+     .min = -WORLD,
+     .max = WORLD,
+     .def_vec = cam_eye},
+    {.name = "target",
+     .type = SCH_VEC3,
+     .desc = "Point the camera looks at; must differ from eye.",
+     .unit = "world units",
+     .min = -WORLD,
+     .max = WORLD,
+     .def_vec = cam_target},
+    {.name = "up",
+     .type = SCH_VEC3,
+     .desc = "Direction that appears upwards in the image; must not be parallel to the view.",
+     .min = -WORLD,
+     .max = WORLD,
+     .def_vec = v_up},
+    {.name = "fov_y",
+     .type = SCH_NUMBER,
+     .desc = "Vertical field of view.",
+     .unit = "degrees",
+     .min = 1,
+     .max = 179,
+     .def = 45},
+    {.name = "near",
+     .type = SCH_NUMBER,
+     .desc = "Distance along the ray where rendering starts; must be less than far.",
+     .unit = "world units",
+     .min = 0,
+     .max = WORLD,
+     .def = 0.01,
+     .flags = SCH_POSITIVE},
+    {.name = "far",
+     .type = SCH_NUMBER,
+     .desc = "Distance along the ray beyond which nothing is drawn.",
+     .unit = "world units",
+     .min = 0,
+     .max = 1e9,
+     .def = 1000,
+     .flags = SCH_POSITIVE},
+    {0},
+};
+
+static const sch_field_t light_fields[] = {
+    {.name = "direction",
+     .type = SCH_VEC3,
+     .desc = "Direction from the scene towards the light (a distant sun); normalised on input.",
+     .min = -WORLD,
+     .max = WORLD,
+     .def_vec = light_dir,
+     .flags = SCH_UNIT_VEC},
+    {.name = "color",
+     .type = SCH_VEC3,
+     .desc = "Linear RGB colour of the light.",
+     .min = 0,
+     .max = 1000,
+     .def_vec = light_color},
+    {.name = "intensity",
+     .type = SCH_NUMBER,
+     .desc = "Multiplier applied to the light's colour.",
+     .min = 0,
+     .max = 1e4,
+     .def = 3},
+    {.name = "ambient",
+     .type = SCH_NUMBER,
+     .desc = "Fraction of the light that reaches surfaces in shadow or facing away.",
+     .min = 0,
+     .max = 1,
+     .def = 0.15},
+    {.name = "shadow_map",
+     .type = SCH_INTEGER,
+     .desc = "Side of the light's shadow map.",
+     .unit = "pixels",
+     .min = 16,
+     .max = 8192,
+     .def = 1024},
+    {0},
+};
+
+static const sch_field_t object_fields[] = {
+    {.name = "id",
+     .type = SCH_STRING,
+     .desc = "Name of the object for clients; unique within the scene when not empty.",
+     .max = 63,
+     .def_str = ""},
+    {.name = "shape",
+     .type = SCH_ENUM,
+     .desc = "Kind of primitive, or a mesh loaded from file.",
+     .enum_values = shapes,
+     .flags = SCH_REQUIRED},
+    {.name = "position",
+     .type = SCH_VEC3,
+     .desc = "Translation of the object's centre.",
+     .unit = "world units",
+     .min = -WORLD,
+     .max = WORLD,
+     .def_vec = v_zero},
+    {.name = "scale",
+     .type = SCH_VEC3,
+     .desc = "Size along the object's own axes (a unit box or a sphere of diameter 1 at scale 1).",
+     .unit = "world units",
+     .min = 0,
+     .max = WORLD,
+     .def_vec = v_one,
+     .flags = SCH_POSITIVE},
+    {.name = "rotation",
+     .type = SCH_VEC3,
+     .desc = "Rotation about the X, then Y, then Z axis.",
+     .unit = "degrees",
+     .min = -36000,
+     .max = 36000,
+     .def_vec = v_zero},
+    {.name = "color",
+     .type = SCH_VEC3,
+     .desc = "Linear RGB albedo of the Lambert surface.",
+     .min = 0,
+     .max = 1000,
+     .def_vec = obj_color},
+    {.name = "file",
+     .type = SCH_STRING,
+     .desc = "Wavefront OBJ file for a mesh, relative to the server's data directory.",
+     .max = 1023,
+     .flags = SCH_NO_DEFAULT},
+    {0},
+};
+
+static const sch_field_t object_item = {
+    .name = "object",
+    .type = SCH_OBJECT,
+    .desc = "An opaque, Lambert-lit, shadow-casting object.",
+    .fields = object_fields,
+};
+
+static const sch_field_t sim_fields[] = {
+    {.name = "time",
+     .type = SCH_NUMBER,
+     .desc = "Simulation clock.",
+     .unit = "seconds",
+     .min = 0,
+     .max = 1e12},
+    {.name = "frame",
+     .type = SCH_INTEGER,
+     .desc = "Number of simulation steps taken.",
+     .min = 0,
+     .max = TWO_53},
+    {.name = "dt",
+     .type = SCH_NUMBER,
+     .desc = "Length of one simulation step.",
+     .unit = "seconds",
+     .min = 0,
+     .max = 1,
+     .def = 1.0 / 60.0,
+     .flags = SCH_POSITIVE},
+    {.name = "playing",
+     .type = SCH_BOOL,
+     .desc = "Whether the server advances the simulation by itself (sim.play)."},
+    {.name = "seed",
+     .type = SCH_INTEGER,
+     .desc = "Seed of every random choice the simulations make.",
+     .min = 0,
+     .max = TWO_53},
+    {0},
+};
+
+static const sch_field_t render_fields[] = {
+    {.name = "exposure",
+     .type = SCH_NUMBER,
+     .desc = "Exposure applied before tone mapping: linear values are scaled by 2^exposure.",
+     .unit = "stops",
+     .min = -20,
+     .max = 20},
+    {.name = "tone_map",
+     .type = SCH_ENUM,
+     .desc = "Curve mapping linear light to display values.",
+     .def_str = "aces",
+     .enum_values = tone_maps},
+    {.name = "transparent_background",
+     .type = SCH_BOOL,
+     .desc = "Give background pixels alpha 0 instead of 1, for compositing."},
+    {0},
+};
+
+static const sch_field_t scene_fields[] = {
+    {.name = "camera",
+     .type = SCH_OBJECT,
+     .desc = "The pinhole camera the scene is rendered from.",
+     .fields = camera_fields},
+    {.name = "background",
+     .type = SCH_VEC3,
+     .desc = "Linear RGB radiance seen where a ray hits nothing.",
+     .min = 0,
+     .max = 1000,
+     .def_vec = bg_color},
+    {.name = "light",
+     .type = SCH_OBJECT,
+     .desc = "The directional key light.",
+     .fields = light_fields},
+    {.name = "objects",
+     .type = SCH_ARRAY,
+     .desc = "Opaque objects, drawn and shadowed.",
+     .max = 1024,
+     .items = &object_item},
+    {.name = "sim",
+     .type = SCH_OBJECT,
+     .desc = "The simulation clock and its settings.",
+     .fields = sim_fields},
+    {.name = "render",
+     .type = SCH_OBJECT,
+     .desc = "How frames are exposed and tone mapped.",
+     .fields = render_fields},
+    {0},
+};
+
+const sch_field_t scene_schema = {
+    .name = "scene",
+    .type = SCH_OBJECT,
+    .desc = "A volfx scene: camera, lighting, objects, simulation clock and render settings.",
+    .fields = scene_fields,
+};

@@ -1,1 +1,546 @@
-/* placeholder */
+/*
+ * The schema engine: walks a static tree of sch_field_t to validate a cJSON value in place
+ * (types, finiteness, ranges, lengths, enums, unknown members), fill in the defaults of absent
+ * members and normalise unit vectors; publishes the same tree as JSON Schema; and follows
+ * dotted paths ("objects.2.color.1") through documents and through the tree itself.
+ *
+ * Range convention: a NUMBER, INTEGER or VEC3 field whose 'min' and 'max' are both 0 has no
+ * range beyond finiteness, and an infinite bound is no bound. Every error names the dotted path
+ * of the offending value, both in sch_error_t.path and at the start of the message.
+ */
+#include "schema.h"
+
+#include <math.h>
+#include <stdarg.h>
+#include <stdio.h>
+#include <stdlib.h>
+#include <string.h>
+
+/* Longest path component we build; longer member names are cut in error paths only. */
+#define PATH_MAX_LEN 256
+
+static int has_range(const sch_field_t *f) {
+  return !(f->min == 0 && f->max == 0);
+}
+
+/* Writes 'v' as the shortest decimal that reads back as the same double, so messages show
+ * "0.1" rather than "0.10000000000000001" and "500" rather than "500.000000". */
+static void fmt_num(char *buf, size_t len, double v) {
+  if (isnan(v)) {
+    snprintf(buf, len, "NaN");
+    return;
+  }
+  if (isinf(v)) {
+    snprintf(buf, len, v > 0 ? "inf" : "-inf");
+    return;
+  }
+  int prec = 1;
+  while (prec < 17) {
+    snprintf(buf, len, "%.*g", prec, v);
+    if (strtod(buf, NULL) == v)
+      break;
+    prec++;
+  }
+  /* %g switches to an exponent once it exceeds the precision; integers up to 17 digits read
+   * better written out ("500", not "5e+02"). */
+  int digits = v == 0 ? 1 : (int)floor(log10(fabs(v))) + 1;
+  if (digits > prec && digits <= 17)
+    prec = digits;
+  snprintf(buf, len, "%.*g", prec, v);
+}
+
+/* Fills 'err' with 'path' and a message that starts with 'shown' (when not empty). The two
+ * differ only for an unknown member, whose message reads best from its container. */
+static int vfail_at(sch_error_t *err, const char *path, const char *shown, const char *fmt,
+                    va_list ap) {
+  char what[224];
+  vsnprintf(what, sizeof what, fmt, ap);
+  if (err) {
+    snprintf(err->path, sizeof err->path, "%s", path);
+    if (shown[0])
+      snprintf(err->message, sizeof err->message, "%s: %s", shown, what);
+    else
+      snprintf(err->message, sizeof err->message, "%s", what);
+  }
+  return -1;
+}
+
+static int fail_at(sch_error_t *err, const char *path, const char *shown, const char *fmt, ...) {
+  va_list ap;
+  va_start(ap, fmt);
+  vfail_at(err, path, shown, fmt, ap);
+  va_end(ap);
+  return -1;
+}
+
+static int fail(sch_error_t *err, const char *path, const char *fmt, ...) {
+  va_list ap;
+  va_start(ap, fmt);
+  vfail_at(err, path, path, fmt, ap);
+  va_end(ap);
+  return -1;
+}
+
+/* The JSON type name of 'v', with its article, for "expected X, got Y" messages. */
+static const char *json_kind(const cJSON *v) {
+  if (cJSON_IsNull(v))
+    return "null";
+  if (cJSON_IsBool(v))
+    return "a boolean";
+  if (cJSON_IsNumber(v))
+    return "a number";
+  if (cJSON_IsString(v))
+    return "a string";
+  if (cJSON_IsArray(v))
+    return "an array";
+  if (cJSON_IsObject(v))
+    return "an object";
+  return "an invalid value";
+}
+
+/* Joins 'prefix' and a member name or index into 'out' ("camera" + "fov_y" = "camera.fov_y"). */
+static void join_path(char *out, size_t len, const char *prefix, const char *name) {
+  if (prefix[0])
+    snprintf(out, len, "%s.%s", prefix, name);
+  else
+    snprintf(out, len, "%s", name);
+}
+
+static void join_index(char *out, size_t len, const char *prefix, int i) {
+  char idx[16];
+  snprintf(idx, sizeof idx, "%d", i);
+  join_path(out, len, prefix, idx);
+}
+
+/* Checks one number against the field's range; 'path' names it. */
+static int check_number(const sch_field_t *f, double v, const char *path, sch_error_t *err) {
+  char a[32], lo[32], hi[32];
+  /* cJSON never parses NaN or Inf from JSON text, but a value built in C can hold either, and
+   * no such number may reach a kernel. */
+  if (!isfinite(v)) {
+    fmt_num(a, sizeof a, v);
+    return fail(err, path, "%s is not a finite number", a);
+  }
+  if (f->type == SCH_INTEGER && v != floor(v)) {
+    fmt_num(a, sizeof a, v);
+    return fail(err, path, "%s is not an integer", a);
+  }
+  if (!has_range(f))
+    return 0;
+  int below = (f->flags & SCH_POSITIVE) ? !(v > f->min) : !(v >= f->min);
+  int above = !(v <= f->max);
+  if (!below && !above)
+    return 0;
+  fmt_num(a, sizeof a, v);
+  fmt_num(lo, sizeof lo, f->min);
+  fmt_num(hi, sizeof hi, f->max);
+  return fail(err, path, "%s is out of range %c%s, %s%c%s%s%s", a,
+              (f->flags & SCH_POSITIVE) || isinf(f->min) ? '(' : '[', lo, hi,
+              isinf(f->max) ? ')' : ']', f->unit ? " (" : "", f->unit ? f->unit : "",
+              f->unit ? ")" : "");
+}
+
+static int validate(const sch_field_t *f, cJSON *v, const char *path, sch_error_t *err);
+
+/* The raw default of 'f' before validation: objects start empty and arrays empty, so that
+ * validating them fills in every nested default. NULL when 'f' has none (ANY) or on OOM. */
+static cJSON *raw_default(const sch_field_t *f) {
+  static const double zero[3] = {0, 0, 0};
+  switch (f->type) {
+  case SCH_NUMBER:
+  case SCH_INTEGER:
+    return cJSON_CreateNumber(f->def);
+  case SCH_BOOL:
+    return cJSON_CreateBool(f->def != 0);
+  case SCH_STRING:
+    return cJSON_CreateString(f->def_str ? f->def_str : "");
+  case SCH_ENUM:
+    if (f->def_str)
+      return cJSON_CreateString(f->def_str);
+    return f->enum_values && f->enum_values[0] ? cJSON_CreateString(f->enum_values[0]) : NULL;
+  case SCH_VEC3:
+    return cJSON_CreateDoubleArray(f->def_vec ? f->def_vec : zero, 3);
+  case SCH_OBJECT:
+    return cJSON_CreateObject();
+  case SCH_ARRAY:
+    return cJSON_CreateArray();
+  case SCH_ANY:
+    break;
+  }
+  return NULL;
+}
+
+/* The validated default of 'f' at 'path', or NULL with 'err' set. A default that does not pass
+ * its own field is a bug in the schema, and reported as such rather than silently stored. */
+static cJSON *make_default(const sch_field_t *f, const char *path, sch_error_t *err) {
+  cJSON *d = raw_default(f);
+  if (!d) {
+    fail(err, path, "has no default value");
+    return NULL;
+  }
+  if (validate(f, d, path, err) != 0) {
+    cJSON_Delete(d);
+    return NULL;
+  }
+  return d;
+}
+
+static int validate_vec3(const sch_field_t *f, cJSON *v, const char *path, sch_error_t *err) {
+  char sub[PATH_MAX_LEN];
+  double c[3];
+  if (!cJSON_IsArray(v))
+    return fail(err, path, "expected an array of 3 numbers, got %s", json_kind(v));
+  int n = cJSON_GetArraySize(v);
+  if (n != 3)
+    return fail(err, path, "expected an array of 3 numbers, got %d item%s", n, n == 1 ? "" : "s");
+  int i = 0;
+  for (cJSON *it = v->child; it; it = it->next, i++) {
+    join_index(sub, sizeof sub, path, i);
+    if (!cJSON_IsNumber(it))
+      return fail(err, sub, "expected a number, got %s", json_kind(it));
+    if (check_number(f, it->valuedouble, sub, err) != 0)
+      return -1;
+    c[i] = it->valuedouble;
+  }
+  if (!(f->flags & SCH_UNIT_VEC))
+    return 0;
+  /* Scale by the largest component first so that the squares cannot overflow. */
+  double m = fmax(fabs(c[0]), fmax(fabs(c[1]), fabs(c[2])));
+  if (m == 0)
+    return fail(err, path, "a direction cannot be the zero vector");
+  double x = c[0] / m, y = c[1] / m, z = c[2] / m;
+  double len = sqrt(x * x + y * y + z * z);
+  i = 0;
+  for (cJSON *it = v->child; it; it = it->next, i++) {
+    double u = (i == 0 ? x : i == 1 ? y : z) / len;
+    cJSON_SetNumberValue(it, u);
+  }
+  return 0;
+}
+
+static int validate_object(const sch_field_t *f, cJSON *v, const char *path, sch_error_t *err) {
+  char sub[PATH_MAX_LEN];
+  if (!cJSON_IsObject(v))
+    return fail(err, path, "expected an object, got %s", json_kind(v));
+  int nf = 0;
+  while (f->fields && f->fields[nf].name)
+    nf++;
+  /* 'slot[k]' is the member for field k: it finds duplicates, and afterwards puts the members
+   * back in schema order so every document reads the same way whatever built it. */
+  cJSON **slot = calloc((size_t)nf + 1, sizeof *slot);
+  if (!slot)
+    return fail(err, path, "out of memory");
+  int rc = -1;
+  for (cJSON *m = v->child; m; m = m->next) {
+    /* Only an object built in C can have a nameless member; parsed JSON never does. */
+    if (!m->string) {
+      fail(err, path, "has a member without a name");
+      goto out;
+    }
+    int k = 0;
+    while (k < nf && strcmp(f->fields[k].name, m->string) != 0)
+      k++;
+    join_path(sub, sizeof sub, path, m->string);
+    if (k == nf) {
+      if (f->flags & SCH_OPEN)
+        continue;
+      /* The path names the member itself, for a client to point at; the message reads from
+       * its container: 'objects.2: unknown member "colour"'. */
+      fail_at(err, sub, path, "unknown member \"%s\"", m->string);
+      goto out;
+    }
+    if (slot[k]) {
+      fail(err, sub, "member appears twice");
+      goto out;
+    }
+    slot[k] = m;
+    if (validate(&f->fields[k], m, sub, err) != 0)
+      goto out;
+  }
+  for (int k = 0; k < nf; k++) {
+    const sch_field_t *mf = &f->fields[k];
+    if (slot[k])
+      continue;
+    join_path(sub, sizeof sub, path, mf->name);
+    if (mf->flags & SCH_REQUIRED) {
+      fail(err, sub, "required member is missing");
+      goto out;
+    }
+    if (mf->flags & SCH_NO_DEFAULT || mf->type == SCH_ANY)
+      continue;
+    cJSON *d = make_default(mf, sub, err);
+    if (!d)
+      goto out;
+    if (!cJSON_AddItemToObject(v, mf->name, d)) {
+      cJSON_Delete(d);
+      fail(err, sub, "out of memory");
+      goto out;
+    }
+    slot[k] = d;
+  }
+  /* Re-append the described members in schema order; undescribed ones (SCH_OPEN) stay first.
+   * Re-adding under the item's own key is safe: cJSON copies the key before freeing it. */
+  for (int k = 0; k < nf; k++) {
+    if (!slot[k])
+      continue;
+    cJSON_DetachItemViaPointer(v, slot[k]);
+    if (!cJSON_AddItemToObject(v, slot[k]->string, slot[k])) {
+      cJSON_Delete(slot[k]);
+      fail(err, path, "out of memory");
+      goto out;
+    }
+  }
+  rc = 0;
+out:
+  free(slot);
+  return rc;
+}
+
+static int validate_array(const sch_field_t *f, cJSON *v, const char *path, sch_error_t *err) {
+  char sub[PATH_MAX_LEN];
+  if (!cJSON_IsArray(v))
+    return fail(err, path, "expected an array, got %s", json_kind(v));
+  int n = cJSON_GetArraySize(v);
+  if (f->max > 0 && n > f->max)
+    return fail(err, path, "%d items is more than the limit of %.0f", n, f->max);
+  if (!f->items)
+    return 0;
+  int i = 0;
+  for (cJSON *it = v->child; it; it = it->next, i++) {
+    join_index(sub, sizeof sub, path, i);
+    if (validate(f->items, it, sub, err) != 0)
+      return -1;
+  }
+  return 0;
+}
+
+static int validate(const sch_field_t *f, cJSON *v, const char *path, sch_error_t *err) {
+  switch (f->type) {
+  case SCH_NUMBER:
+  case SCH_INTEGER:
+    if (!cJSON_IsNumber(v))
+      return fail(err, path, "expected %s, got %s",
+                  f->type == SCH_INTEGER ? "an integer" : "a number", json_kind(v));
+    return check_number(f, v->valuedouble, path, err);
+  case SCH_BOOL:
+    if (!cJSON_IsBool(v))
+      return fail(err, path, "expected true or false, got %s", json_kind(v));
+    return 0;
+  case SCH_STRING:
+    if (!cJSON_IsString(v) || !v->valuestring)
+      return fail(err, path, "expected a string, got %s", json_kind(v));
+    if (f->max > 0 && (double)strlen(v->valuestring) > f->max)
+      return fail(err, path, "string of %zu bytes is longer than the limit of %.0f",
+                  strlen(v->valuestring), f->max);
+    return 0;
+  case SCH_ENUM: {
+    if (!cJSON_IsString(v) || !v->valuestring)
+      return fail(err, path, "expected a string, got %s", json_kind(v));
+    char list[160] = "";
+    size_t used = 0;
+    for (int i = 0; f->enum_values && f->enum_values[i]; i++) {
+      if (strcmp(v->valuestring, f->enum_values[i]) == 0)
+        return 0;
+      int w = snprintf(list + used, sizeof list - used, "%s%s", i ? ", " : "", f->enum_values[i]);
+      if (w > 0 && (size_t)w < sizeof list - used)
+        used += (size_t)w;
+    }
+    /* Quote at most a prefix of what the client sent, so the message stays readable. */
+    return fail(err, path, "\"%.40s\" is not one of %s", v->valuestring, list);
+  }
+  case SCH_VEC3:
+    return validate_vec3(f, v, path, err);
+  case SCH_OBJECT:
+    return validate_object(f, v, path, err);
+  case SCH_ARRAY:
+    return validate_array(f, v, path, err);
+  case SCH_ANY:
+    return 0;
+  }
+  return fail(err, path, "has an unknown schema type");
+}
+
+int sch_validate(const sch_field_t *f, cJSON *v, const char *prefix, sch_error_t *err) {
+  if (err) {
+    err->path[0] = '\0';
+    err->message[0] = '\0';
+  }
+  if (!f || !v)
+    return fail(err, prefix ? prefix : "", "missing value");
+  return validate(f, v, prefix ? prefix : "", err);
+}
+
+cJSON *sch_defaults(const sch_field_t *f) {
+  sch_error_t err;
+  return f ? make_default(f, "", &err) : NULL;
+}
+
+/* Adds the range keywords of 'f' to the JSON Schema 's'; infinite bounds are left out since
+ * JSON cannot carry them. */
+static void add_range(cJSON *s, const sch_field_t *f) {
+  if (!has_range(f))
+    return;
+  if (isfinite(f->min))
+    cJSON_AddNumberToObject(s, (f->flags & SCH_POSITIVE) ? "exclusiveMinimum" : "minimum", f->min);
+  if (isfinite(f->max))
+    cJSON_AddNumberToObject(s, "maximum", f->max);
+}
+
+cJSON *sch_to_json_schema(const sch_field_t *f) {
+  if (!f)
+    return NULL;
+  cJSON *s = cJSON_CreateObject();
+  if (!s)
+    return NULL;
+  switch (f->type) {
+  case SCH_NUMBER:
+  case SCH_INTEGER:
+    cJSON_AddStringToObject(s, "type", f->type == SCH_INTEGER ? "integer" : "number");
+    add_range(s, f);
+    break;
+  case SCH_BOOL:
+    cJSON_AddStringToObject(s, "type", "boolean");
+    break;
+  case SCH_STRING:
+    cJSON_AddStringToObject(s, "type", "string");
+    if (f->max > 0)
+      cJSON_AddNumberToObject(s, "maxLength", f->max);
+    break;
+  case SCH_ENUM: {
+    cJSON_AddStringToObject(s, "type", "string");
+    cJSON *e = cJSON_AddArrayToObject(s, "enum");
+    for (int i = 0; e && f->enum_values && f->enum_values[i]; i++)
+      cJSON_AddItemToArray(e, cJSON_CreateString(f->enum_values[i]));
+    break;
+  }
+  case SCH_VEC3: {
+    cJSON_AddStringToObject(s, "type", "array");
+    cJSON *it = cJSON_AddObjectToObject(s, "items");
+    if (it) {
+      cJSON_AddStringToObject(it, "type", "number");
+      add_range(it, f);
+    }
+    cJSON_AddNumberToObject(s, "minItems", 3);
+    cJSON_AddNumberToObject(s, "maxItems", 3);
+    break;
+  }
+  case SCH_OBJECT: {
+    cJSON_AddStringToObject(s, "type", "object");
+    cJSON *props = cJSON_AddObjectToObject(s, "properties");
+    cJSON *req = NULL;
+    for (const sch_field_t *m = f->fields; m && m->name; m++) {
+      if (props)
+        cJSON_AddItemToObject(props, m->name, sch_to_json_schema(m));
+      if (m->flags & SCH_REQUIRED) {
+        if (!req)
+          req = cJSON_CreateArray();
+        cJSON_AddItemToArray(req, cJSON_CreateString(m->name));
+      }
+    }
+    if (!(f->flags & SCH_OPEN))
+      cJSON_AddFalseToObject(s, "additionalProperties");
+    if (req)
+      cJSON_AddItemToObject(s, "required", req);
+    break;
+  }
+  case SCH_ARRAY:
+    cJSON_AddStringToObject(s, "type", "array");
+    if (f->items)
+      cJSON_AddItemToObject(s, "items", sch_to_json_schema(f->items));
+    if (f->max > 0)
+      cJSON_AddNumberToObject(s, "maxItems", f->max);
+    break;
+  case SCH_ANY:
+    break;
+  }
+  /* Objects carry their defaults in their properties; every other field shows the value an
+   * absent member gets, already validated (so a unit vector's default appears normalised). */
+  if (f->type != SCH_OBJECT && f->type != SCH_ANY &&
+      !(f->flags & (SCH_REQUIRED | SCH_NO_DEFAULT))) {
+    cJSON *d = sch_defaults(f);
+    if (d)
+      cJSON_AddItemToObject(s, "default", d);
+  }
+  if (f->desc)
+    cJSON_AddStringToObject(s, "description", f->desc);
+  if (f->unit)
+    cJSON_AddStringToObject(s, "x-unit", f->unit);
+  return s;
+}
+
+/* Reads the decimal array index in [p, p+n): digits only, no sign, no leading zero (other than
+ * "0" itself), so each index has one spelling. Returns -1 for anything else. */
+static long parse_index(const char *p, size_t n) {
+  if (n == 0 || n > 9 || (n > 1 && p[0] == '0'))
+    return -1;
+  long v = 0;
+  for (size_t i = 0; i < n; i++) {
+    if (p[i] < '0' || p[i] > '9')
+      return -1;
+    v = v * 10 + (p[i] - '0');
+  }
+  return v;
+}
+
+/* Finds the member of 'obj' named by [p, p+n), case-sensitively (cJSON_GetObjectItem is not). */
+static cJSON *member_n(cJSON *obj, const char *p, size_t n) {
+  for (cJSON *m = obj->child; m; m = m->next)
+    if (m->string && strlen(m->string) == n && memcmp(m->string, p, n) == 0)
+      return m;
+  return NULL;
+}
+
+cJSON *sch_path_get(cJSON *root, const char *path) {
+  if (!path || !path[0])
+    return root;
+  cJSON *cur = root;
+  const char *p = path;
+  while (cur) {
+    const char *dot = strchr(p, '.');
+    size_t n = dot ? (size_t)(dot - p) : strlen(p);
+    if (n == 0)
+      return NULL;
+    if (cJSON_IsObject(cur)) {
+      cur = member_n(cur, p, n);
+    } else if (cJSON_IsArray(cur)) {
+      long i = parse_index(p, n);
+      cur = i < 0 ? NULL : cJSON_GetArrayItem(cur, (int)i);
+    } else {
+      return NULL;
+    }
+    if (!dot)
+      return cur;
+    p = dot + 1;
+  }
+  return NULL;
+}
+
+const sch_field_t *sch_path_field(const sch_field_t *root, const char *path) {
+  if (!path || !path[0])
+    return root;
+  const sch_field_t *cur = root;
+  const char *p = path;
+  while (cur) {
+    const char *dot = strchr(p, '.');
+    size_t n = dot ? (size_t)(dot - p) : strlen(p);
+    if (n == 0)
+      return NULL;
+    const sch_field_t *next = NULL;
+    if (cur->type == SCH_OBJECT) {
+      for (const sch_field_t *m = cur->fields; m && m->name; m++)
+        if (strlen(m->name) == n && memcmp(m->name, p, n) == 0) {
+          next = m;
+          break;
+        }
+    } else if (cur->type == SCH_ARRAY) {
+      if (parse_index(p, n) >= 0)
+        next = cur->items;
+    }
+    /* A vec3 component has no field description of its own, so such a path ends here. */
+    cur = next;
+    if (!dot)
+      return cur;
+    p = dot + 1;
+  }
+  return NULL;
+}
