@@ -7,6 +7,7 @@
 #define VOLFX_RENDER_SCENE_H
 
 #include <stdatomic.h>
+#include <stddef.h>
 #include <stdint.h>
 
 typedef enum { SHAPE_BOX, SHAPE_SPHERE, SHAPE_TETRAHEDRON, SHAPE_PLANE, SHAPE_MESH } shape_t;
