@@ -12,15 +12,15 @@
 static const char alphabet[] = "ABCDEFGHIJKLMNOPQRSTUVWXYZabcdefghijklmnopqrstuvwxyz0123456789+/";
 
 /* The value of each byte as a base64 symbol, or BAD, computed at compile time from the same
- * ranges as 'alphabet'. */
+ * ranges as 'alphabet'. The cast keeps clang from warning about the arms not taken. */
 #define BAD 0xFF
 #define SYM(c)                                                                                     \
-  ((c) >= 'A' && (c) <= 'Z'   ? (c) - 'A'                                                          \
-   : (c) >= 'a' && (c) <= 'z' ? (c) - 'a' + 26                                                     \
-   : (c) >= '0' && (c) <= '9' ? (c) - '0' + 52                                                     \
-   : (c) == '+'               ? 62                                                                 \
-   : (c) == '/'               ? 63                                                                 \
-                              : BAD)
+  (unsigned char)((c) >= 'A' && (c) <= 'Z'   ? (c) - 'A'                                           \
+                  : (c) >= 'a' && (c) <= 'z' ? (c) - 'a' + 26                                      \
+                  : (c) >= '0' && (c) <= '9' ? (c) - '0' + 52                                      \
+                  : (c) == '+'               ? 62                                                  \
+                  : (c) == '/'               ? 63                                                  \
+                                             : BAD)
 #define SYM4(c) SYM(c), SYM((c) + 1), SYM((c) + 2), SYM((c) + 3)
 #define SYM16(c) SYM4(c), SYM4((c) + 4), SYM4((c) + 8), SYM4((c) + 12)
 #define SYM64(c) SYM16(c), SYM16((c) + 16), SYM16((c) + 32), SYM16((c) + 48)

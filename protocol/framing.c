@@ -123,7 +123,7 @@ int proto_reader_line(proto_reader_t *r, char **line, size_t *len) {
   if (n > 0 && base[n - 1] == '\r')
     n--;
   if (n > r->max_line) {
-    r->scanned = avail;
+    r->scanned = (size_t)(nl - base); /* The next call finds the same '\n' at once. */
     return PROTO_READ_OVERSIZE;
   }
   base[n] = '\0';
