@@ -113,7 +113,7 @@ int proto_json_depth_ok(const char *s, size_t n, int max_depth);
 
 /*
  * Parses one message. Checks UTF-8 and nesting depth first. Returns the value or NULL with
- * '*why' set to a static description ("invalid UTF-8", "nesting deeper than 64", "invalid
+ * 'whybuf' holding a description ("invalid UTF-8", "nesting deeper than 64", "invalid
  * JSON at byte 17" written into 'whybuf').
  */
 cJSON *proto_parse(const char *s, size_t n, char *whybuf, size_t whylen);
