@@ -1,0 +1,204 @@
+#!/usr/bin/env python3
+"""
+rpc.discover against docs/protocol.md: the OpenRPC document names exactly the methods of the
+protocol's "Methods" section, every parameter named in a heading, with JSON Schemas, defaults
+and ranges, and publishes the scene document's schema as components.schemas.Scene.
+
+    python3 tests/integration/test_discover.py --bin build/bin
+"""
+
+import os
+import re
+import sys
+
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+import mock  # noqa: E402
+from mock import short  # noqa: E402
+
+suite = mock.Suite("test_discover", timeout_s=240)
+suite.server_args = []
+T = suite.test
+
+ROOT = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+PROTOCOL_MD = os.path.join(ROOT, "docs", "protocol.md")
+DOC = {}
+
+
+def parse_protocol_md(path):
+    """
+    {method: {param: default_or_None}} from the `### ` headings of the "Methods" section, e.g.
+    ### `sim.play {scene, rate = 60}` / `sim.pause {scene}`
+    ### `scene.set {scene, patch}` or `{scene, path, value}`
+    A backtick span starting with '{' adds params to the method before it.
+    """
+    with open(path, encoding="utf-8") as f:
+        text = f.read()
+    m = re.search(r"^## Methods\s*$(.*?)(?=^## |\Z)", text, re.M | re.S)
+    if not m:
+        raise mock.CheckError("docs/protocol.md has no '## Methods' section")
+    methods = {}
+    for line in m.group(1).splitlines():
+        if not line.startswith("### "):
+            continue
+        last = None
+        for span in re.findall(r"`([^`]*)`", line):
+            span = span.strip()
+            if span.startswith("{"):
+                name, body = last, span
+            else:
+                mm = re.match(r"([A-Za-z0-9_.]+)\s*(\{.*\})?\s*$", span)
+                if not mm:
+                    continue
+                name, body = mm.group(1), mm.group(2) or "{}"
+                last = name
+            if name is None:
+                continue
+            params = methods.setdefault(name, {})
+            inner = body.strip()[1:-1].strip()
+            for item in filter(None, (x.strip() for x in inner.split(","))):
+                pname, _, default = item.partition("=")
+                pname = pname.strip().rstrip("?").strip()
+                default = default.strip()
+                if default:
+                    default = mock.loads(default)
+                else:
+                    default = None
+                params[pname] = default
+    return methods
+
+
+def resolve(doc, schema, depth=0):
+    """Follows local $ref pointers ("#/components/schemas/X")."""
+    while isinstance(schema, dict) and "$ref" in schema and depth < 20:
+        ref = schema["$ref"]
+        if not ref.startswith("#/"):
+            return schema
+        node = doc
+        for part in ref[2:].split("/"):
+            node = node.get(part) if isinstance(node, dict) else None
+        schema = node
+        depth += 1
+    return schema
+
+
+@T
+def documented_methods(s):
+    DOC["methods"] = parse_protocol_md(PROTOCOL_MD)
+    names = sorted(DOC["methods"])
+    print("    docs/protocol.md methods: %s" % ", ".join(names))
+    for must in ("server.info", "rpc.discover", "auth", "scene.list", "scene.create",
+                 "scene.delete", "scene.get", "scene.set", "sim.step", "sim.play", "sim.pause",
+                 "render", "frames.subscribe", "frames.unsubscribe", "stats", "server.shutdown"):
+        s.check(must in DOC["methods"], "the heading parser finds %s" % must)
+    s.check("path" in DOC["methods"].get("scene.set", {}) and
+            "patch" in DOC["methods"].get("scene.set", {}),
+            "scene.set has both forms' params", short(DOC["methods"].get("scene.set")))
+
+
+@T
+def openrpc_document(s):
+    with s.srv.connect() as c:
+        r, _ = c.ok("rpc.discover", {})
+        # Without params too.
+        r2, _ = c.ok("rpc.discover")
+        s.eq(r2, r, "rpc.discover without params gives the same document")
+        lim = c.ok("server.info", {})[0].get("limits", {})
+    DOC["openrpc"] = r
+    s.eq(r.get("openrpc"), "1.2.6", "openrpc version")
+    info = r.get("info")
+    s.check(isinstance(info, dict) and isinstance(info.get("title"), str) and
+            isinstance(info.get("version"), str), "info has title and version", short(info))
+    methods = r.get("methods")
+    if not s.check(isinstance(methods, list) and methods, "methods is a non-empty array"):
+        return
+    byname = {}
+    for m in methods:
+        if s.check(isinstance(m, dict) and isinstance(m.get("name"), str), "method has a name",
+                   short(m)):
+            s.check(m["name"] not in byname, "method %s listed once" % m["name"])
+            byname[m["name"]] = m
+    documented = DOC.get("methods") or parse_protocol_md(PROTOCOL_MD)
+    for name in sorted(documented):
+        s.check(name in byname, "documented method %s is in rpc.discover" % name)
+    for name in sorted(byname):
+        s.check(name in documented, "rpc.discover method %s is documented in docs/protocol.md"
+                % name)
+    for name, m in sorted(byname.items()):
+        params = m.get("params")
+        if not s.check(isinstance(params, list), "%s params is an array" % name, short(m)):
+            continue
+        pnames = {}
+        for p in params:
+            p = resolve(r, p)
+            ok = isinstance(p, dict) and isinstance(p.get("name"), str) and \
+                isinstance(resolve(r, p.get("schema")), dict)
+            s.check(ok, "%s param has a name and a schema" % name, short(p))
+            if ok:
+                pnames[p["name"]] = p
+        s.check("result" in m and isinstance(resolve(r, m["result"]), dict) and
+                "schema" in resolve(r, m["result"]), "%s has a result with a schema" % name,
+                short(m.get("result")))
+        s.check(isinstance(m.get("errors", []), list), "%s errors is an array" % name)
+        for pname, default in documented.get(name, {}).items():
+            if not s.check(pname in pnames, "%s param %s (documented) is in rpc.discover" %
+                           (name, pname), "has %s" % sorted(pnames)):
+                continue
+            if pname == "scene":
+                default = "main"  # "scene defaults to main wherever it appears"
+            if default is not None:
+                sch = resolve(r, pnames[pname]["schema"])
+                s.eq(sch.get("default"), default, "%s.%s default as documented" % (name, pname))
+        for pname in pnames:
+            s.check(pname in documented.get(name, {}) or name not in documented,
+                    "%s param %s from rpc.discover is documented" % (name, pname))
+        if name in documented:
+            s.eq(m.get("paramStructure", "by-name"), "by-name",
+                 "%s paramStructure by-name" % name)
+    # render's width: range and default.
+    rm = byname.get("render")
+    if rm:
+        width = [resolve(r, p) for p in rm.get("params", [])
+                 if isinstance(resolve(r, p), dict) and resolve(r, p).get("name") == "width"]
+        if s.check(width, "render has a width param"):
+            sch = resolve(r, width[0].get("schema")) or {}
+            s.eq(sch.get("default"), 512, "render width default")
+            s.eq(sch.get("minimum"), 1, "render width minimum")
+            s.eq(sch.get("maximum"), lim.get("frame_side", 4096),
+                 "render width maximum is limits.frame_side")
+            s.check(sch.get("type") == "integer", "render width is an integer", short(sch))
+        codes = {e.get("code") for e in (resolve(r, e) for e in rm.get("errors", []))
+                 if isinstance(e, dict)}
+        for code in (mock.E_PARAMS, mock.E_LIMIT, mock.E_NOT_FOUND):
+            s.check(code in codes, "render lists error %d" % code, sorted(codes, key=str))
+    # The scene schema.
+    comps = r.get("components") or {}
+    scene = resolve(r, (comps.get("schemas") or {}).get("Scene"))
+    if not s.check(isinstance(scene, dict), "components.schemas.Scene exists", short(comps)):
+        return
+    props = scene.get("properties") or {}
+    for k in ("camera", "background", "light", "objects", "waves", "fluid", "cloud", "volumes",
+              "sim", "render"):
+        s.check(k in props, "Scene has property %s" % k, sorted(props))
+    cam = resolve(r, props.get("camera")) or {}
+    fov = resolve(r, (cam.get("properties") or {}).get("fov_y"))
+    if s.check(isinstance(fov, dict), "Scene camera.fov_y schema", short(cam)):
+        s.check("default" in fov, "camera.fov_y has a default", short(fov))
+        s.eq(fov.get("x-unit"), "degrees", "camera.fov_y x-unit")
+        s.check("minimum" in fov or "exclusiveMinimum" in fov, "camera.fov_y has a minimum",
+                short(fov))
+        s.check("maximum" in fov or "exclusiveMaximum" in fov, "camera.fov_y has a maximum",
+                short(fov))
+    s.eq(scene.get("additionalProperties"), False, "Scene refuses unknown members")
+    # The scene's defaults are what a new scene holds.
+    with s.srv.connect() as c:
+        c.ok("scene.create", {"name": "defaults"})
+        doc, _ = c.ok("scene.get", {"scene": "defaults"})
+        c.ok("scene.delete", {"name": "defaults"})
+    want = fov.get("default") if isinstance(fov, dict) else None
+    if doc.get("camera", {}).get("fov_y") != want:
+        s.note("a new scene's camera.fov_y %r is not the published default %r" %
+               (doc.get("camera", {}).get("fov_y"), want))
+
+
+if __name__ == "__main__":
+    sys.exit(suite.main())
