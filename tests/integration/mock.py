@@ -230,6 +230,7 @@ class Server:
         self.bin_dir = bin_dir
         self.args = list(args)
         self.env = dict(os.environ)
+        _lsan_suppressions(self.env)
         if env:
             self.env.update(env)
         self.start_timeout = start_timeout
@@ -361,6 +362,11 @@ class Server:
             clean = _record(False, "no sanitizer report in the server log", ", ".join(marks))
         if not clean:
             self.print_log()
+        else:
+            try:
+                os.unlink(self.log_path)
+            except OSError:
+                pass
         if self in _live_servers:
             _live_servers.remove(self)
         try:
@@ -385,6 +391,27 @@ class Server:
         for ln in lines[-tail:]:
             print("  | " + ln)
         print("----- end of volfxd stderr -----", flush=True)
+
+
+# PoCL compiles kernels with LLVM and clang, which keep allocations alive on purpose; their
+# leaks are not volfxd's. An AddressSanitizer build of volfxd is otherwise held to no leaks.
+LSAN_SUPPRESS = ("libpocl", "libLLVM", "libclang", "libclang-cpp", "libOpenCL")
+_lsan_file = None
+
+
+def _lsan_suppressions(env):
+    global _lsan_file
+    if "suppressions=" in env.get("LSAN_OPTIONS", ""):
+        return
+    if _lsan_file is None:
+        fd, _lsan_file = tempfile.mkstemp(prefix="volfx-lsan-", suffix=".supp")
+        with os.fdopen(fd, "w") as f:
+            f.write("".join("leak:%s\n" % m for m in LSAN_SUPPRESS))
+        import atexit
+        atexit.register(os.unlink, _lsan_file)
+    opts = env.get("LSAN_OPTIONS", "")
+    env["LSAN_OPTIONS"] = (opts + ":" if opts else "") + "suppressions=" + _lsan_file + \
+        ":print_suppressions=0"
 
 
 def _record(cond, what, detail=""):
