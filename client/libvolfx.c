@@ -231,8 +231,8 @@ static int read_raw(volfx_conn_t *c, unsigned char *dst, size_t n, int64_t deadl
  * Takes the attachment described by 'holder' (a result or notification params): the base64
  * "data" (in the attachment or beside it) when present, which is then removed from 'holder',
  * else 'bytes' raw bytes off the stream. 'att' may be NULL to drop the bytes. Returns 0 or a
- * VOLFX_E_* code; raw bytes already consumed are never left half-read except on a transport
- * error, which breaks the connection.
+ * VOLFX_E_* code; a transport error may leave the raw bytes half-read, so the caller must then
+ * treat the stream as broken.
  */
 static int take_attachment(volfx_conn_t *c, cJSON *holder, volfx_attachment_t *att,
                            int64_t deadline) {
@@ -310,8 +310,9 @@ static int is_notification(const cJSON *msg) {
  * Reads the next message. Waiting for its line ends at 'wait_deadline' (a signal ends it too
  * when 'intr_ok'); once the line is in, its attachment bytes are read under the connection's
  * own timeout, so that a short wait never leaves an attachment half-read. On success '*msg' is
- * the parsed message and 'att' (for a notification; NULL drops it) or 'result_att' (for a
- * response) holds its bytes. Returns 0 or a VOLFX_E_* code.
+ * the parsed message, and its attachment is in 'note_att' when it is a notification or in
+ * 'result_att' when it is a response (either may be NULL to drop the bytes). Returns 0 or a
+ * VOLFX_E_* code.
  */
 static int read_message(volfx_conn_t *c, int64_t wait_deadline, int intr_ok, cJSON **msg,
                         volfx_attachment_t *note_att, volfx_attachment_t *result_att) {

@@ -50,11 +50,14 @@ static const char usage_text[] =
     "                                render one frame into FILE (- for stdout) and print a\n"
     "                                summary with work_ms; --aov depth|wave_h defaults to f32\n"
     "  watch [--fps F] [-W W] [-H H] [--format F] [--aov A] [--layers a,b] [--count N]\n"
-    "        [-o PATTERN] [-v]\n"
+    "        [-o PATTERN] [--seq] [-v]\n"
     "                                frames.subscribe; writes each frame to PATTERN with %d or\n"
     "                                %06d replaced by the frame number, or only counts them;\n"
     "                                stops after N frames or on Ctrl-C, then unsubscribes and\n"
-    "                                prints received and dropped; -v prints a line per frame\n"
+    "                                prints received and dropped; -v prints a line per frame.\n"
+    "                                The frame number is the scene's (sim.frame), the same for\n"
+    "                                every frame of a paused scene: --seq numbers the files\n"
+    "                                1, 2, ... in order of arrival instead\n"
     "  script FILE                   run one command per line on one connection; blank lines\n"
     "                                and words starting with # are skipped; words split as in\n"
     "                                the shell ('...', \"...\", \\); stops at the first error\n"
@@ -632,12 +635,13 @@ static void catch_sigint(int on) {
   sigaction(SIGINT, &sa, NULL); /* No SA_RESTART: a blocked poll() returns. */
 }
 
-/* watch [--fps F] [-W W] [-H H] [--format F] [--count N] [-o PATTERN] [-v] */
+/* watch [--fps F] [-W W] [-H H] [--format F] [--count N] [-o PATTERN] [--seq] [-v] */
 static int cmd_watch(const cli_t *cli, int argc, char **argv) {
   cJSON *p = scene_params(cli);
   const char *pattern = NULL;
   long count = 0;
   int verbose = 0;
+  int by_arrival = 0; /* --seq: name files by arrival count, not by the frame's number. */
   for (int i = 1; i < argc; i++) {
     const char *v;
     int m = take_opt(argc, argv, &i, "--output", "-o", &pattern);
@@ -651,6 +655,10 @@ static int cmd_watch(const cli_t *cli, int argc, char **argv) {
     }
     if (m == 0 && (strcmp(argv[i], "-v") == 0 || strcmp(argv[i], "--verbose") == 0)) {
       verbose = 1;
+      m = 1;
+    }
+    if (m == 0 && strcmp(argv[i], "--seq") == 0) {
+      by_arrival = 1;
       m = 1;
     }
     if (m == 0) {
@@ -708,7 +716,7 @@ static int cmd_watch(const cli_t *cli, int argc, char **argv) {
     }
     if (pattern != NULL) {
       char path[4096];
-      if (frame_path(pattern, frame, path, sizeof(path)) != 0) {
+      if (frame_path(pattern, by_arrival ? received : frame, path, sizeof(path)) != 0) {
         status = usage_error(cli, "output pattern too long%s", NULL);
       } else {
         status = write_file(cli, path, att.data, att.len);

@@ -57,7 +57,8 @@ class VolfxError(Exception):
         self.message = message
         self.path = path
         self.data = data
-        text = "%s: %s" % (ERROR_NAMES.get(code, "error %d" % code), message)
+        kind = ERROR_NAMES.get(code, "error %d" % code)
+        text = message if message.startswith(kind) else "%s: %s" % (kind, message)
         if path:
             text += " (path %s)" % path
         super().__init__(text)
@@ -443,7 +444,8 @@ def _run(c, a):
                 received += 1
                 dropped = params.get("dropped", dropped)
                 if a.output:
-                    with open(_frame_path(a.output, params.get("frame", received)), "wb") as f:
+                    n = received if a.seq else params.get("frame", received)
+                    with open(_frame_path(a.output, n), "wb") as f:
                         f.write(data or b"")
         finally:
             signal.signal(signal.SIGINT, old)
@@ -495,6 +497,8 @@ def main(argv=None):
         if name == "watch":
             s.add_argument("--fps", type=float)
             s.add_argument("-n", "--count", type=int, default=0)
+            s.add_argument("--seq", action="store_true",
+                           help="number files by arrival, not by the scene's frame number")
     s = sub.add_parser("call")
     s.add_argument("method")
     s.add_argument("params", nargs="?")

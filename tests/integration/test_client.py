@@ -23,6 +23,8 @@ TOTAL_TIMEOUT = 300  # seconds for the whole test
 CALL_TIMEOUT = 120   # seconds for one CLI invocation
 PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
 
+SERVERS = []  # every volfxd started, so that the watchdog can kill them all
+
 ROOT = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
 
@@ -47,12 +49,13 @@ def png_size(data):
 class Server:
     """A volfxd child process on 127.0.0.1 with a free port and a temporary data directory."""
 
-    def __init__(self, bindir, datadir):
-        self.log_path = os.path.join(datadir, "..", "volfxd.log")
+    def __init__(self, bindir, datadir, extra=()):
+        self.log_path = os.path.join(datadir, "volfxd.log")
         self.log = open(self.log_path, "wb")
         self.proc = subprocess.Popen(
-            [os.path.join(bindir, "volfxd"), "--listen", "127.0.0.1:0", "--data", datadir],
-            stdout=subprocess.PIPE, stderr=self.log, cwd=ROOT)
+            [os.path.join(bindir, "volfxd"), "--listen", "127.0.0.1:0", "--data", datadir]
+            + list(extra), stdout=subprocess.PIPE, stderr=self.log, cwd=ROOT)
+        SERVERS.append(self)
         self.port = None
         found = threading.Event()
 
@@ -85,19 +88,24 @@ class Server:
         if self.proc.poll() is None:
             self.proc.kill()
             self.proc.wait()
+        self.log.close()
 
 
 class Cli:
     """Runs bin/volfx against the server."""
 
-    def __init__(self, bindir, port, workdir):
+    def __init__(self, bindir, port, workdir, conn=None):
         self.exe = os.path.join(bindir, "volfx")
-        self.port = port
+        self.conn = conn if conn is not None else ["--port", str(port)]
         self.workdir = workdir
 
-    def run(self, *args, ok=True):
-        cmd = [self.exe, "--port", str(self.port)] + list(args)
-        p = subprocess.run(cmd, capture_output=True, timeout=CALL_TIMEOUT, cwd=self.workdir)
+    def run(self, *args, ok=True, env=None):
+        cmd = [self.exe] + self.conn + list(args)
+        environ = dict(os.environ)
+        environ.pop("VOLFX_TOKEN", None)
+        environ.update(env or {})
+        p = subprocess.run(cmd, capture_output=True, timeout=CALL_TIMEOUT, cwd=self.workdir,
+                           env=environ)
         out = p.stdout.decode("utf-8", "replace")
         err = p.stderr.decode("utf-8", "replace")
         if ok:
@@ -155,11 +163,12 @@ def test_cli(cli, work):
     check(size == 4 * 32 * 16, "depth f32 is %d bytes, not %d" % (size, 4 * 32 * 16))
 
     _, out, _ = cli.run("watch", "--count", "3", "--fps", "20", "-W", "32", "-H", "32",
-                        "-o", "w_%06d.png")
+                        "-o", "w_%06d.png", "--seq")
     m = re.search(r"received (\d+) frames, dropped (\d+)", out)
     check(m is not None and m.group(1) == "3", "watch summary: %r" % out)
     frames = sorted(f for f in os.listdir(work) if re.match(r"w_\d{6}\.png$", f))
-    check(len(frames) >= 1, "watch -o wrote no files")
+    check(frames == ["w_000001.png", "w_000002.png", "w_000003.png"],
+          "watch -o --seq wrote %r" % frames)
     with open(os.path.join(work, frames[0]), "rb") as f:
         check(png_size(f.read()) == (32, 32), "watched frame is not 32x32")
 
@@ -187,11 +196,16 @@ def test_cli(cli, work):
     check(cli.json("get", "sim.frame") == frame1, "the script went on after its failing line")
 
 
-def test_python(port):
+def load_python_client():
     spec = importlib.util.spec_from_file_location(
         "volfx", os.path.join(ROOT, "client", "python", "volfx.py"))
     volfx = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(volfx)
+    return volfx
+
+
+def test_python(port):
+    volfx = load_python_client()
 
     with volfx.Client("127.0.0.1", port, timeout=60) as c:
         check(c.info()["name"] == "volfxd", "python info")
@@ -228,6 +242,46 @@ def test_python(port):
           "volfx.py get: %r %r" % (out.stdout, out.stderr))
 
 
+def test_token_unix(bindir, root):
+    """A second server with a token and a Unix socket: auth is required and works both ways."""
+    data = os.path.join(root, "data-token")
+    os.mkdir(data)
+    sock = os.path.join(data, "volfxd.sock")
+    token = "t0k3n-for-tests"
+    server = Server(bindir, data, ["--token", token, "--unix", sock])
+    try:
+        cli = Cli(bindir, server.port, data)
+        rc, _, err = cli.run("info", ok=False)
+        check(rc == 1 and "unauthorized" in err, "no token: rc %d, %r" % (rc, err))
+        rc, _, err = cli.run("--token", "wrong", "info", ok=False)
+        check(rc == 1 and "unauthorized" in err, "wrong token: rc %d, %r" % (rc, err))
+        check(cli.json("--token", token, "info").get("auth_required") is True,
+              "info.auth_required is not true")
+
+        unix = Cli(bindir, None, data, conn=["--unix", sock])
+        _, out, _ = unix.run("get", "camera.fov_y", env={"VOLFX_TOKEN": token})
+        check(isinstance(json.loads(out), (int, float)), "get over the Unix socket: %r" % out)
+
+        volfx = load_python_client()
+        with volfx.Client(unix=sock, timeout=30) as c:
+            try:
+                c.info()
+                raise Failure("python: info without auth did not raise")
+            except volfx.VolfxError as e:
+                check(e.code == -32001, "python: no auth gave code %r" % e.code)
+        with volfx.Client(unix=sock, token=token, timeout=30) as c:
+            check(c.info()["name"] == "volfxd", "python over the Unix socket with a token")
+
+        unix.run("shutdown", env={"VOLFX_TOKEN": token})
+        try:
+            rc = server.proc.wait(30)
+        except subprocess.TimeoutExpired:
+            raise Failure("the token server did not exit within 30 s of shutdown")
+        check(rc == 0, "the token server exited %d" % rc)
+    finally:
+        server.stop()
+
+
 def main():
     ap = argparse.ArgumentParser()
     ap.add_argument("--bin", required=True, help="directory holding volfxd and volfx")
@@ -243,8 +297,9 @@ def main():
 
     def watchdog():
         print("FAIL: test_client timed out after %d s" % TOTAL_TIMEOUT, flush=True)
-        if server is not None:
-            server.stop()
+        for s in SERVERS:
+            if s.proc.poll() is None:
+                s.proc.kill()
         os._exit(1)
 
     timer = threading.Timer(TOTAL_TIMEOUT, watchdog)
@@ -252,6 +307,7 @@ def main():
     timer.start()
     status = 1
     try:
+        test_token_unix(bindir, tmp.name)
         server = Server(bindir, data)
         cli = Cli(bindir, server.port, work)
         test_cli(cli, work)
