@@ -36,6 +36,17 @@ static int is_json_space(char c) {
  * short for every C consumer. Returns the offset of the first such byte and sets '*what', or
  * returns 'n' when there is none.
  */
+/* 1 when the digit at 's[i]' (outside strings) is the first digit of a number's integer part,
+ * rather than a later digit, a fraction digit or an exponent digit (where zeros may lead). */
+static int starts_integer_part(const char *s, size_t i) {
+  if (i == 0)
+    return 1;
+  char p = s[i - 1];
+  if (p == '-')
+    return !(i >= 2 && (s[i - 2] == 'e' || s[i - 2] == 'E'));
+  return !((p >= '0' && p <= '9') || p == '.' || p == 'e' || p == 'E' || p == '+');
+}
+
 static size_t find_bad_byte(const char *s, size_t n, const char **what) {
   int in_string = 0;
 
@@ -46,6 +57,10 @@ static size_t find_bad_byte(const char *s, size_t n, const char **what) {
         in_string = 1;
       } else if (c < 0x20 && !is_json_space((char)c)) {
         *what = "control character";
+        return i;
+      } else if (c == '0' && i + 1 < n && s[i + 1] >= '0' && s[i + 1] <= '9' &&
+                 starts_integer_part(s, i)) {
+        *what = "number with a leading zero"; /* cJSON would read 01 as 1. */
         return i;
       }
       continue;

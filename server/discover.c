@@ -2,6 +2,8 @@
  * The OpenRPC document of rpc.discover, generated from the method table and the scene schema,
  * so that what the server checks and what it publishes cannot drift apart.
  */
+#include <string.h>
+
 #include "dispatch.h"
 
 static cJSON *error_json(int code) {
@@ -11,7 +13,16 @@ static cJSON *error_json(int code) {
   return e;
 }
 
-static cJSON *method_json(const method_t *m) {
+/* The frame size params are bounded by a configurable limit, which the static schema cannot
+ * know: the published maximum is the server's own. */
+static void publish_limits(const server_t *s, const sch_field_t *f, cJSON *schema) {
+  if (strcmp(f->name, "width") == 0 || strcmp(f->name, "height") == 0) {
+    cJSON_DeleteItemFromObject(schema, "maximum");
+    cJSON_AddNumberToObject(schema, "maximum", s->cfg.limits.frame_side);
+  }
+}
+
+static cJSON *method_json(const server_t *s, const method_t *m) {
   cJSON *o = cJSON_CreateObject();
   cJSON_AddStringToObject(o, "name", m->name);
   cJSON_AddStringToObject(o, "summary", m->summary);
@@ -23,7 +34,9 @@ static cJSON *method_json(const method_t *m) {
     if (f->desc)
       cJSON_AddStringToObject(p, "description", f->desc);
     cJSON_AddBoolToObject(p, "required", (f->flags & SCH_REQUIRED) != 0);
-    cJSON_AddItemToObject(p, "schema", sch_to_json_schema(f));
+    cJSON *schema = sch_to_json_schema(f);
+    publish_limits(s, f, schema);
+    cJSON_AddItemToObject(p, "schema", schema);
     cJSON_AddItemToArray(params, p);
   }
   cJSON *result = cJSON_AddObjectToObject(o, "result");
@@ -38,7 +51,6 @@ static cJSON *method_json(const method_t *m) {
 }
 
 cJSON *discover_document(const server_t *s) {
-  (void)s;
   cJSON *doc = cJSON_CreateObject();
   cJSON_AddStringToObject(doc, "openrpc", "1.2.6");
   cJSON *info = cJSON_AddObjectToObject(doc, "info");
@@ -47,7 +59,7 @@ cJSON *discover_document(const server_t *s) {
   cJSON_AddStringToObject(info, "x-protocol", PROTO_VERSION);
   cJSON *methods = cJSON_AddArrayToObject(doc, "methods");
   for (const method_t *const *m = method_table; *m; m++)
-    cJSON_AddItemToArray(methods, method_json(*m));
+    cJSON_AddItemToArray(methods, method_json(s, *m));
   cJSON *components = cJSON_AddObjectToObject(doc, "components");
   cJSON *schemas = cJSON_AddObjectToObject(components, "schemas");
   cJSON_AddItemToObject(schemas, "Scene", sch_to_json_schema(&scene_schema));

@@ -34,13 +34,20 @@ static reply_t *reply_append(conn_t *c, int nparts, int batch) {
   return r;
 }
 
-/* Fills a part that never became a call (envelope errors). */
-static void part_error(conn_t *c, reply_t *r, int i, const cJSON *id, int code, const char *msg,
-                       const char *path) {
-  r->parts[i].response = proto_make_error(id, code, msg, path);
+/* Fills a part that never became a call (envelope errors). 'notification' marks a valid
+ * request without an id, which JSON-RPC never answers, not even with an error. */
+static void part_error_n(conn_t *c, reply_t *r, int i, const cJSON *id, int notification, int code,
+                         const char *msg, const char *path) {
+  if (!notification)
+    r->parts[i].response = proto_make_error(id, code, msg, path);
   r->parts[i].done = 1;
   r->pending--;
   c->srv->stats.errors++;
+}
+
+static void part_error(conn_t *c, reply_t *r, int i, const cJSON *id, int code, const char *msg,
+                       const char *path) {
+  part_error_n(c, r, i, id, 0, code, msg, path);
 }
 
 static void call_finish(call_t *call, cJSON *response, unsigned char *att, size_t att_len) {
@@ -131,17 +138,17 @@ static void dispatch_one(conn_t *c, reply_t *r, int i, const cJSON *msg) {
   if (!m) {
     char text[256];
     snprintf(text, sizeof text, "method not found: '%.128s'", req.method);
-    part_error(c, r, i, req.id, PROTO_E_METHOD_NOT_FOUND, text, NULL);
+    part_error_n(c, r, i, req.id, !req.id, PROTO_E_METHOD_NOT_FOUND, text, NULL);
     return;
   }
   if (!c->authed && !(m->flags & METHOD_NO_AUTH)) {
-    part_error(c, r, i, req.id, PROTO_E_UNAUTHORIZED,
-               "unauthorized: this server needs 'auth' with its token first", NULL);
+    part_error_n(c, r, i, req.id, !req.id, PROTO_E_UNAUTHORIZED,
+                 "unauthorized: this server needs 'auth' with its token first", NULL);
     return;
   }
   if (req.params && !cJSON_IsObject(req.params)) {
-    part_error(c, r, i, req.id, PROTO_E_INVALID_PARAMS,
-               "invalid params: params must be an object of named params", "params");
+    part_error_n(c, r, i, req.id, !req.id, PROTO_E_INVALID_PARAMS,
+                 "invalid params: params must be an object of named params", "params");
     return;
   }
   cJSON *params = req.params ? cJSON_Duplicate(req.params, 1) : cJSON_CreateObject();
@@ -150,13 +157,13 @@ static void dispatch_one(conn_t *c, reply_t *r, int i, const cJSON *msg) {
     cJSON_Delete(params);
     char text[600];
     snprintf(text, sizeof text, "invalid params: %s", params ? err.message : "out of memory");
-    part_error(c, r, i, req.id, PROTO_E_INVALID_PARAMS, text, params ? err.path : NULL);
+    part_error_n(c, r, i, req.id, !req.id, PROTO_E_INVALID_PARAMS, text, params ? err.path : NULL);
     return;
   }
   call_t *call = calloc(1, sizeof *call);
   if (!call) {
     cJSON_Delete(params);
-    part_error(c, r, i, req.id, PROTO_E_INTERNAL, "internal error: out of memory", NULL);
+    part_error_n(c, r, i, req.id, !req.id, PROTO_E_INTERNAL, "internal error: out of memory", NULL);
     return;
   }
   call->srv = s;

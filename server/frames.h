@@ -7,6 +7,8 @@
 #ifndef VOLFX_FRAMES_H
 #define VOLFX_FRAMES_H
 
+#include <math.h>
+
 #include "server.h"
 #include "worker.h"
 
@@ -39,14 +41,14 @@ cJSON *render_job_times(const job_t *j);
        .desc = "Frame width; at most limits.frame_side (larger is -32003).",                       \
        .unit = "pixels",                                                                           \
        .min = 1,                                                                                   \
-       .max = 2147483647,                                                                          \
+       .max = INFINITY,                                                                            \
        .def = 512},                                                                                \
       {.name = "height",                                                                           \
        .type = SCH_INTEGER,                                                                        \
        .desc = "Frame height; at most limits.frame_side (larger is -32003).",                      \
        .unit = "pixels",                                                                           \
        .min = 1,                                                                                   \
-       .max = 2147483647,                                                                          \
+       .max = INFINITY,                                                                            \
        .def = 512},                                                                                \
       {.name = "format",                                                                           \
        .type = SCH_ENUM,                                                                           \

@@ -159,6 +159,8 @@ static void write_reply(conn_t *c, reply_t *r) {
     } else if ((att = malloc(att_len)) != NULL) {
       size_t off = 0;
       for (int i = 0; i < r->nparts; i++) {
+        if (!r->parts[i].att_len)
+          continue;
         memcpy(att + off, r->parts[i].att, r->parts[i].att_len);
         off += r->parts[i].att_len;
       }

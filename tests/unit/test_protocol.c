@@ -659,6 +659,16 @@ static void test_parse(void) {
   v = PARSE("{} x");
   CHECK(v == NULL);
   CHECK_STR(why, "invalid JSON at byte 3: trailing characters");
+  /* Leading zeros are not JSON, though cJSON alone would accept them; zeros after the
+   * first digit, in fractions and in exponents are fine. */
+  v = PARSE("{\"id\":01}");
+  CHECK(v == NULL);
+  CHECK_STR(why, "invalid JSON at byte 6: number with a leading zero");
+  v = PARSE("[-00.5]");
+  CHECK(v == NULL);
+  v = PARSE("[0, -0, 10, 100.005, 1e05, 2E-007, 0.0, -0.01, \"01\"]");
+  CHECK(v != NULL);
+  cJSON_Delete(v);
   v = PARSE("{}{}");
   CHECK(v == NULL);
   CHECK_STR(why, "invalid JSON at byte 2: trailing characters");
