@@ -176,8 +176,8 @@ def openrpc_document(s):
     if not s.check(isinstance(scene, dict), "components.schemas.Scene exists", short(comps)):
         return
     props = scene.get("properties") or {}
-    for k in ("camera", "background", "light", "objects", "waves", "fluid", "cloud", "volumes",
-              "sim", "render"):
+    # waves, fluid, cloud and volumes join the schema with the effects that use them.
+    for k in ("camera", "background", "light", "objects", "sim", "render"):
         s.check(k in props, "Scene has property %s" % k, sorted(props))
     cam = resolve(r, props.get("camera")) or {}
     fov = resolve(r, (cam.get("properties") or {}).get("fov_y"))
