@@ -1,0 +1,95 @@
+/*
+ * Definitions shared by the kernels and the host renderer: the per-frame constants passed by
+ * value to the objects kernel, and the layout of the object, BVH node and triangle records in
+ * their float buffers. It is valid OpenCL C and valid C11, so render.c includes the same file
+ * and the two sides cannot drift; device-only helpers sit under __OPENCL_VERSION__.
+ *
+ * Coordinates. Objects are placed by world = T * Rz * Ry * Rx * S * object: scale first, then
+ * the rotations about X, Y and Z in that order (degrees), then the translation. The host
+ * turns every object into world-space data before a frame, so kernels never see a rotation.
+ * Ray parameters are distances along unit world-space rays.
+ */
+#ifndef VOLFX_KERNELS_COMMON_H
+#define VOLFX_KERNELS_COMMON_H
+
+/*
+ * Constants of one frame. Only scalars and scalar arrays, so the layout is the same on the host
+ * and on every device. Per-pixel buffers have 'pitch' pixels per row and the height rounded up
+ * to the local size, so work-items outside the image write padding instead of testing bounds. The
+ * camera ray of pixel (x, y) has the direction normalize(base + (x + 0.5) * step_x + (y + 0.5) *
+ * step_y).
+ */
+typedef struct vfx_frame {
+  int width, height; /* Image size. */
+  int pitch;         /* Pixels per row of the per-pixel buffers: width rounded up. */
+  int nsph;          /* Ellipsoid records at objs[0]. */
+  int nconv;         /* Convex records (boxes, tetrahedra, planes) at objs[conv_off]. */
+  int conv_off;      /* Float offset of the first convex record. */
+  int mesh_off;      /* Float offset of the mesh colours, three per mesh object. */
+  int ntri;          /* Triangles in the mesh BVH; 0 skips the meshes. */
+  float eye[3];
+  float base[3];   /* Direction through the image plane's top-left corner. */
+  float step_x[3]; /* Image-plane step per pixel to the right. */
+  float step_y[3]; /* Image-plane step per pixel down. */
+  float near_, far_;
+  float light_dir[3]; /* Unit, towards the light. */
+  float light_rgb[3]; /* Light colour times intensity. */
+  float ambient;
+  float bg[4]; /* Background: linear RGB and alpha. */
+} vfx_frame_t;
+
+/*
+ * An ellipsoid (a scaled, rotated sphere) in 16 floats: centre, then the 3x3 matrix, row-major,
+ * that maps a world offset from the centre to object space, where the surface is the sphere
+ * of radius 0.5; then the linear colour and the radius of a sphere about the centre that
+ * contains the ellipsoid.
+ */
+#define SPH_CENTER 0
+#define SPH_MINV 3
+#define SPH_COLOR 12
+#define SPH_RADIUS 15
+#define SPH_STRIDE 16
+
+/*
+ * A convex polyhedron in 32 floats: up to six world-space half-spaces n.x <= d as
+ * (nx, ny, nz, d) with unit n, the linear colour, the number of half-spaces used (int bits),
+ * and a bounding sphere (centre, radius; the radius is INFINITY for a plane). A box uses six
+ * half-spaces, a tetrahedron four and an infinite plane one: the plane is the boundary of the
+ * half-space below it, so it is seen, and casts shadows, from both sides.
+ */
+#define CONV_PLANES 6
+#define CONV_COLOR 24
+#define CONV_NPLANES 27
+#define CONV_BOUND 28
+#define CONV_STRIDE 32
+
+/*
+ * A BVH node in 8 floats: bounds min xyz, max xyz, then two ints stored as float bits. A leaf
+ * has count > 0 and 'first' indexes its first triangle; an inner node has count 0, its left
+ * child right after it and its right child at 'first'.
+ */
+#define NODE_FIRST 6
+#define NODE_COUNT 7
+#define NODE_STRIDE 8
+#define BVH_MAX_DEPTH                                                                              \
+  40 /* The host stops splitting here, so a traversal stack of this depth suffices. */
+
+/* A triangle in 10 floats: v0, e1 = v1 - v0, e2 = v2 - v0, and as int bits the index of its
+ * mesh object, whose colour is at objs[mesh_off + 3 * index]. */
+#define TRI_COLOR 9
+#define TRI_STRIDE 10
+
+/* Tone-map operators, matching tone_map_t in render_scene.h. */
+#define TONE_OP_NONE 0
+#define TONE_OP_REINHARD 1
+#define TONE_OP_ACES 2
+
+#ifdef __OPENCL_VERSION__
+
+/* Moves a shadow ray's origin off its surface by this much per unit of distance from the eye,
+ * plus the same amount, so rounding in the hit point cannot make a surface shadow itself. */
+#define SHADOW_BIAS 2e-4f
+
+#endif
+
+#endif
