@@ -22,6 +22,8 @@ typedef struct cl_dev {
   cl_program program;
   char platform_name[128];
   char device_name[128];
+  char binary_path[4200]; /* Where this program's binary is cached; "" when not cached. */
+  int from_binary;        /* The program was loaded from 'binary_path'. */
 } cl_dev_t;
 
 /*
@@ -35,10 +37,20 @@ int cl_dev_open(cl_dev_t *d, const char *which, char *err, size_t errlen);
 /*
  * Builds the program from every kernel file, with quoted #includes of the other kernel files
  * expanded in place: the embedded copies, or the files of the same names in 'kernels_dir'
- * when it is not NULL. On a build failure 'err' holds the build log.
+ * when it is not NULL. On a build failure 'err' holds the build log. A program binary saved by
+ * cl_dev_save_binary for the same device, driver, options and source text is loaded instead
+ * of compiling, from volfx-programs/ beside PoCL's cache (so clearing that cache clears both).
  */
 int cl_dev_build(cl_dev_t *d, const char *kernels_dir, const char *options, char *err,
                  size_t errlen);
+
+/*
+ * Saves the built program's binary to 'binary_path' (written to a temporary file, then
+ * renamed), unless it was loaded from there. Call it after every kernel has run: PoCL's binary
+ * then holds the work-group functions compiled for the real local sizes, and a later start
+ * loads it in milliseconds with nothing left to compile. Failure only costs speed.
+ */
+void cl_dev_save_binary(cl_dev_t *d);
 
 /* Creates kernel 'name' of the built program; NULL with a message in 'err'. */
 cl_kernel cl_dev_kernel(cl_dev_t *d, const char *name, char *err, size_t errlen);

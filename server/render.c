@@ -986,6 +986,11 @@ fail:
 void renderer_destroy(renderer_t *r) {
   if (r == NULL)
     return;
+  /* Getting the binary out of PoCL compiles every kernel for every case (about a second),
+   * so it is saved when the renderer goes away rather than delaying the first frame. The
+   * next start loads it in milliseconds. */
+  if (r->objects && r->tonemap)
+    cl_dev_save_binary(&r->dev);
   bvh_forget(r);
   cl_mem bufs[] = {r->linear, r->depth, r->rgba8, r->objs, r->nodes, r->tris};
   for (size_t i = 0; i < sizeof bufs / sizeof bufs[0]; i++) {
