@@ -41,6 +41,23 @@ typedef struct robject {
   mesh_t *mesh; /* SHAPE_MESH only; a counted reference. */
 } robject_t;
 
+/*
+ * An energy wave (SPEC §5.1): sphere term a/sqrt(r²+ε²) around the centre M plus beam term
+ * b/sqrt(q²+ε²) along the segment [M, M + length·direction], zero outside the capsule of
+ * 'radius' around that segment. The pixel shows min(H, clamp) mapped to 'color', added to
+ * what is behind.
+ */
+typedef struct rwave {
+  float center[3];
+  float direction[3]; /* Unit. */
+  float a, b;         /* Sphere and beam strengths. */
+  float length;       /* Beam length L >= 0 (world units). */
+  float radius;       /* Support radius R > 0 (world units). */
+  float softening;    /* epsilon > 0 (world units). */
+  float clamp;        /* c > 0: the largest H shown. */
+  float color[3];     /* Linear RGB at H = clamp. */
+} rwave_t;
+
 typedef struct render_scene {
   atomic_int refs;
   rcamera_t camera;
@@ -54,6 +71,8 @@ typedef struct render_scene {
   } light;
   robject_t *objects;
   int nobjects;
+  rwave_t *waves; /* Owned by the snapshot (freed with it). */
+  int nwaves;
   float exposure; /* Stops: pixel = tone_map(linear * 2^exposure). */
   tone_map_t tone_map;
   int transparent_background; /* Background pixels get alpha 0 instead of 1. */
