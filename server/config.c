@@ -11,6 +11,7 @@
 #include <stdlib.h>
 #include <string.h>
 
+#include "files.h"
 #include "log.h"
 
 static const char usage[] =
@@ -215,31 +216,11 @@ static int apply_limits(config_t *c, const cJSON *lim) {
 }
 
 static int load_file(config_t *c, const char *path) {
-  FILE *f = fopen(path, "rb");
-  if (!f) {
-    fprintf(stderr, "volfxd: cannot open config %s: %s\n", path, strerror(errno));
+  char *text = files_read(path, 1u << 20, NULL);
+  if (!text) {
+    fprintf(stderr, "volfxd: cannot read config %s: %s\n", path, strerror(errno));
     return CONFIG_ERROR;
   }
-  char *text = NULL;
-  size_t len = 0, cap = 0;
-  for (;;) {
-    if (len + 4096 + 1 > cap) {
-      cap = cap ? cap * 2 : 8192;
-      char *t = realloc(text, cap);
-      if (!t) {
-        free(text);
-        fclose(f);
-        return CONFIG_ERROR;
-      }
-      text = t;
-    }
-    size_t n = fread(text + len, 1, 4096, f);
-    len += n;
-    if (n < 4096)
-      break;
-  }
-  fclose(f);
-  text[len] = '\0';
   cJSON *doc = cJSON_Parse(text);
   free(text);
   if (!cJSON_IsObject(doc)) {

@@ -8,6 +8,7 @@
 #include <stdlib.h>
 #include <string.h>
 
+#include "files.h"
 #include "frames.h"
 #include "log.h"
 #include "server.h"
@@ -24,35 +25,6 @@ scene_entry_t *server_find_scene(server_t *s, const char *name) {
   return NULL;
 }
 
-/* Reads a whole file into a NUL-terminated buffer; NULL with errno set on failure. */
-static char *read_file(const char *path, size_t max) {
-  FILE *f = fopen(path, "rb");
-  if (!f)
-    return NULL;
-  char *buf = NULL;
-  size_t len = 0, cap = 0;
-  for (;;) {
-    if (len + 65536 + 1 > cap) {
-      cap = cap ? cap * 2 : 131072;
-      char *b = realloc(buf, cap);
-      if (!b || cap > max + 65536 + 1) {
-        free(b ? b : buf);
-        fclose(f);
-        errno = b ? EFBIG : ENOMEM;
-        return NULL;
-      }
-      buf = b;
-    }
-    size_t n = fread(buf + len, 1, 65536, f);
-    len += n;
-    if (n < 65536)
-      break;
-  }
-  fclose(f);
-  buf[len] = '\0';
-  return buf;
-}
-
 cJSON *server_load_preset(server_t *s, const char *name, scene_error_t *err) {
   char path[2048];
   size_t n = strlen(name);
@@ -61,7 +33,7 @@ cJSON *server_load_preset(server_t *s, const char *name, scene_error_t *err) {
     snprintf(path, sizeof path, "%s", name);
   else
     snprintf(path, sizeof path, "%s/%s.json", s->cfg.presets_dir, name);
-  char *text = read_file(path, 16u << 20);
+  char *text = files_read(path, 16u << 20, NULL);
   if (!text) {
     err->code = PROTO_E_NOT_FOUND;
     snprintf(err->path, sizeof err->path, "preset");

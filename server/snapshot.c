@@ -16,6 +16,7 @@
 #include <unistd.h>
 
 #include "datapath.h"
+#include "files.h"
 #include "dispatch.h"
 
 #define SNAPSHOT_VERSION 1
@@ -144,28 +145,11 @@ static void scene_save(call_t *call) {
 /* Thread pool: reads the whole file. */
 static void load_work(uv_work_t *req) {
   snap_work_t *w = req->data;
-  FILE *f = fopen(w->path, "rb");
-  if (!f) {
+  w->text = files_read(w->path, SNAPSHOT_MAX_BYTES, &w->len);
+  if (!w->text) {
     w->err = errno;
-    w->step = "open";
-    return;
-  }
-  struct stat st;
-  if (fstat(fileno(f), &st) != 0 || st.st_size > (off_t)SNAPSHOT_MAX_BYTES) {
-    w->err = EFBIG;
     w->step = "read";
-    fclose(f);
-    return;
   }
-  w->text = malloc((size_t)st.st_size + 1);
-  if (!w->text || fread(w->text, 1, (size_t)st.st_size, f) != (size_t)st.st_size) {
-    w->err = w->text ? EIO : ENOMEM;
-    w->step = "read";
-  } else {
-    w->len = (size_t)st.st_size;
-    w->text[w->len] = '\0';
-  }
-  fclose(f);
 }
 
 static void load_done(uv_work_t *req, int status) {
