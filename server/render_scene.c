@@ -1,7 +1,7 @@
 /*
  * Reference counting of compiled scenes. A snapshot is shared between the loop thread (the
  * scene's current one) and any render jobs still reading it, so the count is atomic and the
- * last holder frees the objects and drops the mesh references they hold.
+ * last holder frees the objects and the waves and drops the mesh references the objects hold.
  */
 /* render_scene.h uses size_t without including <stddef.h>; until it does, this comes first. */
 #include <stddef.h>
@@ -28,5 +28,6 @@ void render_scene_unref(render_scene_t *s) {
     if (s->objects[i].mesh)
       mesh_unref(s->objects[i].mesh);
   free(s->objects);
+  free(s->waves);
   free(s);
 }

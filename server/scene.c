@@ -6,6 +6,8 @@
  * the scene's, so a failed change leaves the document, the version and the snapshot exactly as
  * they were. Mesh files are resolved under the data directory and kept in a small cache keyed
  * by resolved path, inode, size and mtime, so patches that keep a mesh do not reload it.
+ * Waves carry animations (anim.c): the clock moves them, writing the current values into the
+ * document and compiling a new snapshot once per advance, however many steps it takes.
  */
 #include "scene.h"
 
@@ -18,6 +20,7 @@
 #include <string.h>
 #include <sys/stat.h>
 
+#include "anim.h"
 #include "proto.h"
 
 /* Shortest distance between eye and target, relative to their magnitude: below this the
@@ -283,6 +286,75 @@ static int check_cross(const cJSON *doc, scene_error_t *err) {
   return 0;
 }
 
+/* The members of one wave, as the schema describes them. */
+static const sch_field_t *wave_fields(void) {
+  return sch_path_field(&scene_schema, "waves.0")->fields;
+}
+
+/*
+ * The checks of the waves that involve more than one field, on a document that passed the
+ * schema: ids unique when not empty, a and b not both 0 (such a wave could never show, unless
+ * one of them is animated and may grow), and the animations (anim_check), which validate their
+ * targets and keys in place and fill in their defaults.
+ */
+static int check_waves(cJSON *doc, scene_error_t *err) {
+  const sch_field_t *wf = wave_fields();
+  cJSON *waves = get(doc, "waves");
+  int i = 0;
+  for (cJSON *w = waves->child; w; w = w->next, i++) {
+    char p[64];
+    const char *id = get(w, "id")->valuestring;
+    int j = 0;
+    for (const cJSON *q = waves->child; id[0] && q != w; q = q->next, j++) {
+      if (strcmp(get(q, "id")->valuestring, id) == 0) {
+        snprintf(p, sizeof p, "waves.%d.id", i);
+        return set_err(err, PROTO_E_INVALID_PARAMS, p, "%s: \"%s\" is already the id of waves.%d",
+                       p, id, j);
+      }
+    }
+    if (get(w, "a")->valuedouble == 0 && get(w, "b")->valuedouble == 0 && !anim_animates(w, "a") &&
+        !anim_animates(w, "b")) {
+      snprintf(p, sizeof p, "waves.%d.a", i);
+      return set_err(err, PROTO_E_INVALID_PARAMS, p,
+                     "%s: a and b are both 0, so the wave would never show", p);
+    }
+    snprintf(p, sizeof p, "waves.%d", i);
+    sch_error_t se;
+    if (anim_check(w, wf, p, &se) != 0)
+      return set_err(err, PROTO_E_INVALID_PARAMS, se.path, "%s", se.message);
+  }
+  return 0;
+}
+
+/* Compiles the waves of 'doc' into 'rs' (rs->waves NULL when there are none). Returns 0 or -1
+ * on OOM, leaving rs->waves NULL. */
+static int compile_waves(const cJSON *doc, render_scene_t *rs) {
+  const cJSON *waves = get(doc, "waves");
+  int n = cJSON_GetArraySize(waves);
+  rs->waves = NULL;
+  rs->nwaves = 0;
+  if (n == 0)
+    return 0;
+  rs->waves = calloc((size_t)n, sizeof *rs->waves);
+  if (!rs->waves)
+    return -1;
+  int i = 0;
+  for (const cJSON *w = waves->child; w; w = w->next, i++) {
+    rwave_t *rw = &rs->waves[i];
+    vec3f(get(w, "center"), rw->center);
+    vec3f(get(w, "direction"), rw->direction);
+    rw->a = (float)get(w, "a")->valuedouble;
+    rw->b = (float)get(w, "b")->valuedouble;
+    rw->length = (float)get(w, "length")->valuedouble;
+    rw->radius = (float)get(w, "radius")->valuedouble;
+    rw->softening = (float)get(w, "softening")->valuedouble;
+    rw->clamp = (float)get(w, "clamp")->valuedouble;
+    vec3f(get(w, "color"), rw->color);
+  }
+  rs->nwaves = n;
+  return 0;
+}
+
 static shape_t shape_of(const char *s) {
   static const char *const names[] = {"box", "sphere", "tetrahedron", "plane", "mesh"};
   for (int i = 0; i < 5; i++)
@@ -366,19 +438,32 @@ static render_scene_t *compile(const cJSON *doc, scene_error_t *err) {
       }
     }
   }
+  if (compile_waves(doc, rs) != 0) {
+    render_scene_unref(rs);
+    set_err(err, PROTO_E_INTERNAL, "", "out of memory");
+    return NULL;
+  }
   return rs;
 }
 
-/* Validates 'doc' in place (defaults, normalisation), checks it across fields and compiles it.
- * Returns the new snapshot, or NULL with 'err' set. */
+/*
+ * Validates 'doc' in place (defaults, normalisation), checks it across fields, sets each
+ * keyframed wave field to its value at the document's sim.time (keyframes own their field: a
+ * value written there is replaced) and compiles it. Returns the new snapshot, or NULL with
+ * 'err' set.
+ */
 static render_scene_t *prepare(cJSON *doc, scene_error_t *err) {
   sch_error_t se;
   if (sch_validate(&scene_schema, doc, "", &se) != 0) {
     set_err(err, PROTO_E_INVALID_PARAMS, se.path, "%s", se.message);
     return NULL;
   }
-  if (check_cross(doc, err) != 0)
+  if (check_cross(doc, err) != 0 || check_waves(doc, err) != 0)
     return NULL;
+  double now = get(get(doc, "sim"), "time")->valuedouble;
+  const sch_field_t *wf = wave_fields();
+  for (cJSON *w = get(doc, "waves")->child; w; w = w->next)
+    anim_apply_keys(w, wf, now);
   return compile(doc, err);
 }
 
@@ -594,18 +679,25 @@ int scene_replace(scene_t *s, const cJSON *doc, scene_error_t *err) {
   return commit(s, copy, err);
 }
 
-/* A new snapshot equal to 'old' but for the clock; the renderer may still hold 'old', so it is
- * copied rather than changed. NULL on OOM. */
-static render_scene_t *snapshot_with_clock(const render_scene_t *old, uint64_t frame, double time) {
+/* A new snapshot equal to 'old' but for the clock and the waves, compiled afresh from 'doc'
+ * (animation moves them); the renderer may still hold 'old', so it is copied rather than
+ * changed. NULL on OOM. */
+static render_scene_t *snapshot_advanced(const render_scene_t *old, const cJSON *doc,
+                                         uint64_t frame, double time) {
   render_scene_t *rs = malloc(sizeof *rs);
   if (!rs)
     return NULL;
   memcpy(rs, old, sizeof *rs);
   atomic_init(&rs->refs, 1);
   rs->objects = NULL;
+  if (compile_waves(doc, rs) != 0) {
+    free(rs);
+    return NULL;
+  }
   if (old->nobjects > 0) {
     rs->objects = malloc((size_t)old->nobjects * sizeof *rs->objects);
     if (!rs->objects) {
+      free(rs->waves);
       free(rs);
       return NULL;
     }
@@ -620,10 +712,14 @@ static render_scene_t *snapshot_with_clock(const render_scene_t *old, uint64_t f
 }
 
 /*
- * Advances the clock by 'steps' steps of 'dt' seconds, in the document and in a fresh
- * snapshot. The clock is not an edit, so 'version' is left alone: it counts changes made by
- * clients. Both values stop at the schema's maxima so the document stays valid. Should memory
- * run out, the old snapshot (with the old clock) stays in place.
+ * Advances the clock by 'steps' steps of 'dt' seconds, and the wave animations with it, in
+ * the document and in one fresh snapshot. Toward-target animations move at a constant rate
+ * and keyframes depend on the time alone, so a batch of steps is applied in one go: 10000
+ * steps cost what one does, and end where 10000 single steps would (up to rounding). The
+ * clock and the animations are not edits, so 'version' is left alone: it counts changes made
+ * by clients. Time and frame stop at the schema's maxima so the document stays valid. Should
+ * memory run out, the old snapshot (with the old clock and waves) stays in place until the
+ * next change; the document has moved on regardless.
  */
 void scene_advance(scene_t *s, unsigned steps, double dt) {
   if (steps == 0 || !(dt > 0) || !isfinite(dt))
@@ -636,7 +732,10 @@ void scene_advance(scene_t *s, unsigned steps, double dt) {
   double f = fmin(jf->valuedouble + steps, ff->max);
   cJSON_SetNumberValue(jt, t);
   cJSON_SetNumberValue(jf, f);
-  render_scene_t *rs = snapshot_with_clock(s->snapshot, (uint64_t)f, t);
+  const sch_field_t *wf = wave_fields();
+  for (cJSON *w = get(s->doc, "waves")->child; w; w = w->next)
+    anim_advance(w, wf, steps * dt, t);
+  render_scene_t *rs = snapshot_advanced(s->snapshot, s->doc, (uint64_t)f, t);
   if (rs) {
     render_scene_unref(s->snapshot);
     s->snapshot = rs;

@@ -52,7 +52,9 @@ int scene_set_path(scene_t *s, const char *path, const cJSON *value, scene_error
 /* Replaces the whole document (scene.load). Returns 0 or -1 with 'err'. */
 int scene_replace(scene_t *s, const cJSON *doc, scene_error_t *err);
 
-/* Advances the clock: sim.time += steps * dt, sim.frame += steps. */
+/* Advances the clock: sim.time += steps * dt, sim.frame += steps, and the wave animations
+ * with it (their current values written into the document); compiles one snapshot per call,
+ * however many steps it takes. */
 void scene_advance(scene_t *s, unsigned steps, double dt);
 
 /* Convenience reads of the validated document. */

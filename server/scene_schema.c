@@ -165,6 +165,184 @@ static const sch_field_t object_item = {
     .fields = object_fields,
 };
 
+/* Waves (SPEC §5.1). The defaults suit a scene of unit scale such as the default one: a glow
+ * about a unit across around the default camera's target, its beam reaching two units along
+ * +x, in a cyan blue that the tone map turns towards white where the glow is clamped. H, the
+ * integral along the ray that the clamp bounds, has the units of a and b. */
+static const double wave_center[3] = {0, 0.5, 0};
+static const double wave_direction[3] = {1, 0, 0};
+static const double wave_color[3] = {0.35, 0.8, 1.6};
+
+static const char *const wave_animatable[] = {"center", "direction", "a",     "b",     "length",
+                                              "radius", "softening", "clamp", "color", NULL};
+static const char *const interps[] = {"linear", "smooth", NULL};
+
+static const sch_field_t anim_key_fields[] = {
+    {.name = "t",
+     .type = SCH_NUMBER,
+     .desc = "Simulation time of the key; strictly greater than the previous key's.",
+     .unit = "seconds",
+     .min = 0,
+     .max = 1e12,
+     .flags = SCH_REQUIRED},
+    {.name = "value",
+     .type = SCH_ANY,
+     .desc = "Value of the field at t: a number, or [x, y, z] for center, direction and color; "
+             "within the field's range.",
+     .flags = SCH_REQUIRED},
+    {0},
+};
+
+static const sch_field_t anim_key_item = {
+    .name = "key",
+    .type = SCH_OBJECT,
+    .desc = "One keyframe.",
+    .fields = anim_key_fields,
+};
+
+static const sch_field_t wave_anim_fields[] = {
+    {.name = "field",
+     .type = SCH_ENUM,
+     .desc = "The wave field animated; each field at most once per wave.",
+     .enum_values = wave_animatable,
+     .flags = SCH_REQUIRED},
+    {.name = "target",
+     .type = SCH_ANY,
+     .desc = "Toward-target animation: the value the field moves to, then stays at: a number, or "
+             "[x, y, z] for center, direction and color; within the field's range. Needs rate; "
+             "excludes keys.",
+     .flags = SCH_NO_DEFAULT},
+    {.name = "rate",
+     .type = SCH_NUMBER,
+     .desc = "Speed of a toward-target animation: the field's units per second (a vec3 moves "
+             "along the straight line to the target; direction turns along the great circle "
+             "in radians per second).",
+     .unit = "field units per second",
+     .min = 0,
+     .max = 1e9,
+     .flags = SCH_POSITIVE | SCH_NO_DEFAULT},
+    {.name = "keys",
+     .type = SCH_ARRAY,
+     .desc = "Keyframe animation: at least one key, t strictly increasing; the field takes the "
+             "interpolated value at sim.time, the first key's value before it and the last "
+             "key's after it. Excludes target and rate.",
+     .max = 1024,
+     .items = &anim_key_item,
+     .flags = SCH_NO_DEFAULT},
+    {.name = "interp",
+     .type = SCH_ENUM,
+     .desc = "Keyframes only: linear, or smooth (smoothstep easing between each pair of keys; "
+             "direction is turned along the great circle either way).",
+     .def_str = "linear",
+     .enum_values = interps,
+     .flags = SCH_NO_DEFAULT | SCH_SHOW_DEFAULT},
+    {.name = "loop",
+     .type = SCH_BOOL,
+     .desc = "Keyframes only: after the last key, start again from the first (the period is the "
+             "last key's t minus the first's).",
+     .flags = SCH_NO_DEFAULT | SCH_SHOW_DEFAULT},
+    {0},
+};
+
+static const sch_field_t wave_anim_item = {
+    .name = "animation",
+    .type = SCH_OBJECT,
+    .desc = "Motion or deformation of one wave field, advanced by sim.step and sim.play: either "
+            "toward a target at a rate (target, rate) or by keyframes (keys, interp, loop). The "
+            "current value is written into the field, where scene.get shows it.",
+    .fields = wave_anim_fields,
+};
+
+static const sch_field_t wave_fields[] = {
+    {.name = "id",
+     .type = SCH_STRING,
+     .desc = "Name of the wave for clients; unique among the waves when not empty.",
+     .max = 63,
+     .def_str = ""},
+    {.name = "center",
+     .type = SCH_VEC3,
+     .desc = "Centre M of the sphere term, where the beam starts.",
+     .unit = "world units",
+     .min = -WORLD,
+     .max = WORLD,
+     .def_vec = wave_center},
+    {.name = "direction",
+     .type = SCH_VEC3,
+     .desc = "Direction D of the beam; normalised on input, the zero vector is refused.",
+     .min = -WORLD,
+     .max = WORLD,
+     .def_vec = wave_direction,
+     .flags = SCH_UNIT_VEC},
+    {.name = "a",
+     .type = SCH_NUMBER,
+     .desc = "Strength of the sphere term a/sqrt(r^2 + softening^2); a and b are not both 0 "
+             "unless one of them is animated.",
+     .min = 0,
+     .max = 1e6,
+     .def = 1},
+    {.name = "b",
+     .type = SCH_NUMBER,
+     .desc = "Strength of the beam term b/sqrt(q^2 + softening^2), q the distance to the "
+             "segment from center to center + length * direction.",
+     .min = 0,
+     .max = 1e6,
+     .def = 0.5},
+    {.name = "length",
+     .type = SCH_NUMBER,
+     .desc = "Length L of the beam from center along direction; 0 leaves a sphere. Animate it "
+             "from 0 to grow the beam out of the centre.",
+     .unit = "world units",
+     .min = 0,
+     .max = WORLD,
+     .def = 2},
+    {.name = "radius",
+     .type = SCH_NUMBER,
+     .desc = "Support radius R: the density is zero farther than this from the beam's segment "
+             "(a capsule).",
+     .unit = "world units",
+     .min = 0,
+     .max = WORLD,
+     .def = 3,
+     .flags = SCH_POSITIVE},
+    {.name = "softening",
+     .type = SCH_NUMBER,
+     .desc = "Softening epsilon: keeps the density finite at the centre and on the axis; the "
+             "core's apparent thickness.",
+     .unit = "world units",
+     .min = 0,
+     .max = WORLD,
+     .def = 0.05,
+     .flags = SCH_POSITIVE},
+    {.name = "clamp",
+     .type = SCH_NUMBER,
+     .desc = "Largest H shown (the ray's integral of the density, in the units of a and b): "
+             "min(H, clamp) / clamp scales color.",
+     .min = 0,
+     .max = 1e6,
+     .def = 4,
+     .flags = SCH_POSITIVE},
+    {.name = "color",
+     .type = SCH_VEC3,
+     .desc = "Linear RGB added where H reaches clamp; above 1 blooms towards white.",
+     .min = 0,
+     .max = 1000,
+     .def_vec = wave_color},
+    {.name = "animate",
+     .type = SCH_ARRAY,
+     .desc = "Motion and deformation of this wave's numeric fields (thesis 2.3).",
+     .max = 16,
+     .items = &wave_anim_item},
+    {0},
+};
+
+static const sch_field_t wave_item = {
+    .name = "wave",
+    .type = SCH_OBJECT,
+    .desc = "An energy wave: a glowing sphere at center with a beam along direction, integrated "
+            "in closed form along each ray and added over the objects (SPEC 5.1).",
+    .fields = wave_fields,
+};
+
 static const sch_field_t sim_fields[] = {
     {.name = "time",
      .type = SCH_NUMBER,
@@ -234,6 +412,11 @@ static const sch_field_t scene_fields[] = {
      .desc = "Opaque objects, drawn and shadowed.",
      .max = 1024,
      .items = &object_item},
+    {.name = "waves",
+     .type = SCH_ARRAY,
+     .desc = "Energy waves, drawn additively and hidden behind the objects.",
+     .max = 64,
+     .items = &wave_item},
     {.name = "sim",
      .type = SCH_OBJECT,
      .desc = "The simulation clock and its settings.",
@@ -248,6 +431,7 @@ static const sch_field_t scene_fields[] = {
 const sch_field_t scene_schema = {
     .name = "scene",
     .type = SCH_OBJECT,
-    .desc = "A volfx scene: camera, lighting, objects, simulation clock and render settings.",
+    .desc = "A volfx scene: camera, lighting, objects, energy waves, simulation clock and render "
+            "settings.",
     .fields = scene_fields,
 };

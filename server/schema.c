@@ -10,6 +10,7 @@
  */
 #include "schema.h"
 
+#include <float.h>
 #include <math.h>
 #include <stdarg.h>
 #include <stdio.h>
@@ -203,6 +204,10 @@ static int validate_vec3(const sch_field_t *f, cJSON *v, const char *path, sch_e
     c[i] = it->valuedouble;
   }
   if (!(f->flags & SCH_UNIT_VEC))
+    return 0;
+  /* A vector already of unit length, up to rounding, is left as it is: normalising it again
+   * could move its last bits, and a document validated twice must not change. */
+  if (fabs(c[0] * c[0] + c[1] * c[1] + c[2] * c[2] - 1) <= 4 * DBL_EPSILON)
     return 0;
   /* Scale by the largest component first so that the squares cannot overflow. */
   double m = fmax(fabs(c[0]), fmax(fabs(c[1]), fabs(c[2])));
@@ -455,8 +460,9 @@ cJSON *sch_to_json_schema(const sch_field_t *f) {
   }
   /* Objects carry their defaults in their properties; every other field shows the value an
    * absent member gets, already validated (so a unit vector's default appears normalised). */
-  if (f->type != SCH_OBJECT && f->type != SCH_ANY &&
-      !(f->flags & (SCH_REQUIRED | SCH_NO_DEFAULT))) {
+  int shows_default =
+      !(f->flags & (SCH_REQUIRED | SCH_NO_DEFAULT)) || (f->flags & SCH_SHOW_DEFAULT);
+  if (f->type != SCH_OBJECT && f->type != SCH_ANY && shows_default) {
     cJSON *d = sch_defaults(f);
     if (d)
       cJSON_AddItemToObject(s, "default", d);

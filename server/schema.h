@@ -21,11 +21,14 @@ typedef enum {
 } sch_type_t;
 
 enum {
-  SCH_REQUIRED = 1 << 0,   /* Must be present (no default is filled). */
-  SCH_UNIT_VEC = 1 << 1,   /* VEC3 normalised to length 1; a zero vector is refused. */
-  SCH_POSITIVE = 1 << 2,   /* Number must be > min rather than >= min. */
-  SCH_NO_DEFAULT = 1 << 3, /* Optional, and left absent when absent. */
-  SCH_OPEN = 1 << 4        /* OBJECT that also accepts members it does not describe. */
+  SCH_REQUIRED = 1 << 0,    /* Must be present (no default is filled). */
+  SCH_UNIT_VEC = 1 << 1,    /* VEC3 normalised to length 1; a zero vector is refused. */
+  SCH_POSITIVE = 1 << 2,    /* Number must be > min rather than >= min. */
+  SCH_NO_DEFAULT = 1 << 3,  /* Optional, and left absent when absent. */
+  SCH_OPEN = 1 << 4,        /* OBJECT that also accepts members it does not describe. */
+  SCH_SHOW_DEFAULT = 1 << 5 /* With SCH_NO_DEFAULT: the default is published but not filled in,
+                               because it applies to some uses of the object only; the owner
+                               fills it where it does. */
 };
 
 typedef struct sch_field {

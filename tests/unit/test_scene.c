@@ -271,7 +271,7 @@ static void test_refused(void) {
   REFUSED(s, "{\"sim\": {\"dt\": 0}}", "sim.dt");
   REFUSED(s, "{\"sim\": {\"playing\": 1}}", "sim.playing");
   REFUSED(s, "{\"render\": {\"tone_map\": \"filmic\"}}", "render.tone_map");
-  REFUSED(s, "{\"waves\": []}", "waves");
+  REFUSED(s, "{\"waves\": [7]}", "waves.0");
   REFUSED(s, "{\"Camera\": {}}", "Camera"); /* Names are case-sensitive. */
   expect_refused(s, J("[1, 2]"), PROTO_E_INVALID_PARAMS, "", NULL, __LINE__);
 
