@@ -9,6 +9,7 @@
  * Waves carry animations (anim.c): the clock moves them, writing the current values into the
  * document and compiling a new snapshot once per advance, however many steps it takes.
  */
+#include "datapath.h"
 #include "scene.h"
 
 #include <limits.h>
@@ -93,50 +94,15 @@ static void vec3f(const cJSON *a, float out[3]) {
 
 /* ---- Mesh files ---- */
 
-/* True when 'file' is a relative path none of whose components is "..". */
-static int path_is_tame(const char *file) {
-  if (file[0] == '/')
-    return 0;
-  for (const char *p = file; *p;) {
-    const char *slash = strchr(p, '/');
-    size_t n = slash ? (size_t)(slash - p) : strlen(p);
-    if (n == 2 && p[0] == '.' && p[1] == '.')
-      return 0;
-    if (!slash)
-      break;
-    p = slash + 1;
-  }
-  return 1;
-}
-
 /*
  * Resolves mesh file 'file' of the object at 'path' ("objects.3.file") to a real path under
- * the data directory, in 'out' (PATH_MAX bytes), with its stat in 'st'. The lexical checks
- * refuse what a client could mean as an escape; realpath() then catches symbolic links that
- * lead outside.
+ * the data directory, in 'out' (PATH_MAX bytes), with its stat in 'st'.
  */
 static int resolve_mesh(const char *file, const char *path, char *out, struct stat *st,
                         scene_error_t *err) {
-  if (!g_data_dir)
-    return set_err(err, PROTO_E_INVALID_PARAMS, path,
-                   "%s: mesh files are unavailable: the server has no data directory", path);
-  if (!path_is_tame(file))
-    return set_err(err, PROTO_E_INVALID_PARAMS, path,
-                   "%s: \"%.64s\" must be a relative path inside the data directory, without "
-                   "\"..\"",
-                   path, file);
-  char root[PATH_MAX], joined[PATH_MAX];
-  if (!realpath(g_data_dir, root))
-    return set_err(err, PROTO_E_INVALID_PARAMS, path,
-                   "%s: mesh files are unavailable: the data directory does not exist", path);
-  if (snprintf(joined, sizeof joined, "%s/%s", root, file) >= (int)sizeof joined)
-    return set_err(err, PROTO_E_INVALID_PARAMS, path, "%s: the path is too long", path);
-  if (!realpath(joined, out))
-    return set_err(err, PROTO_E_INVALID_PARAMS, path, "%s: \"%.64s\" not found", path, file);
-  size_t n = strlen(root);
-  if (strncmp(out, root, n) != 0 || (out[n] != '/' && !(n == 1 && root[0] == '/')))
-    return set_err(err, PROTO_E_INVALID_PARAMS, path,
-                   "%s: \"%.64s\" leads outside the data directory", path, file);
+  char why[256];
+  if (datapath_resolve(g_data_dir, file, 1, out, PATH_MAX, why, sizeof why, NULL) != 0)
+    return set_err(err, PROTO_E_INVALID_PARAMS, path, "%s: %s", path, why);
   if (stat(out, st) != 0 || !S_ISREG(st->st_mode))
     return set_err(err, PROTO_E_INVALID_PARAMS, path, "%s: \"%.64s\" is not a regular file", path,
                    file);

@@ -298,6 +298,8 @@ static void test_refused(void) {
   REFUSED(s, "{\"objects\": [{\"shape\": \"mesh\", \"file\": \"x.obj\"}]}", "objects.0.file");
   scene_set_data_dir("/tmp");
   REFUSED(s, "{\"objects\": [{\"shape\": \"mesh\", \"file\": \"../x.obj\"}]}", "objects.0.file");
+  REFUSED(s, "{\"objects\": [{\"shape\": \"mesh\", \"file\": \"./x.obj\"}]}", "objects.0.file");
+  REFUSED(s, "{\"objects\": [{\"shape\": \"mesh\", \"file\": \"/etc/x.obj\"}]}", "objects.0.file");
   REFUSED(s, "{\"objects\": [{\"shape\": \"mesh\", \"file\": \"a/../../x.obj\"}]}",
           "objects.0.file");
   REFUSED(s, "{\"objects\": [{\"shape\": \"mesh\", \"file\": \"/etc/passwd\"}]}", "objects.0.file");
@@ -615,7 +617,7 @@ static void test_meshes(void) {
   scene_error_t err;
   CHECK(patch_text(s,
                    "{\"objects\": [{\"shape\": \"mesh\", \"file\": \"quad.obj\"}, {\"shape\": "
-                   "\"mesh\", \"file\": \"./sub/tri.obj\"}, {\"shape\": \"box\"}]}",
+                   "\"mesh\", \"file\": \"sub/tri.obj\"}, {\"shape\": \"box\"}]}",
                    &err) == 0);
   if (s->snapshot->nobjects == 3) {
     mesh_t *m = s->snapshot->objects[0].mesh;
