@@ -84,6 +84,34 @@ typedef struct vfx_frame {
 #define TONE_OP_REINHARD 1
 #define TONE_OP_ACES 2
 
+/*
+ * An energy wave (SPEC §5.1) in WAVE_STRIDE floats, made by the host for one frame's eye S,
+ * in double and then rounded, so that the kernel never subtracts large coordinates: w = S - M,
+ * the unit axis D, w' = w - (w.D) D (the part of w across the axis), s0 = w.D, the beam length
+ * L, R^2, eps^2, the strengths a and b, |w'|^2, a bounding sphere (S minus its centre
+ * M + (L/2) D, then its radius R + L/2), the clamp c and 1/c, the linear colour and R.
+ */
+#define WAVE_W 0
+#define WAVE_D 3
+#define WAVE_WP 6
+#define WAVE_S0 9
+#define WAVE_L 10
+#define WAVE_R2 11
+#define WAVE_EPS2 12
+#define WAVE_A 13
+#define WAVE_B 14
+#define WAVE_GP 15
+#define WAVE_BOUND 16
+#define WAVE_CLAMP 20
+#define WAVE_INV_CLAMP 21
+#define WAVE_COLOR 22
+#define WAVE_RADIUS 25
+#define WAVE_STRIDE 28
+
+/* Bits of the waves kernels' 'mode'. */
+#define WAVES_ADD 1     /* Add the clamped glow to the linear image. */
+#define WAVES_STORE_H 2 /* Write the summed unclamped H to the f32 buffer. */
+
 #ifdef __OPENCL_VERSION__
 
 /* Moves a shadow ray's origin off its surface by this much per unit of distance from the eye,

@@ -258,10 +258,22 @@ static int sbuf_add(sbuf_t *b, const char *s, size_t n) {
 }
 
 /*
- * The text of kernel file 'name': the embedded copy, or 'dir'/'name'. Returns a malloc'd,
- * NUL-terminated copy, or NULL with a message.
+ * The text of kernel file 'name': the embedded copy, or 'dir'/'name'. A file that 'dir' lacks
+ * but the build embedded comes from the embedded copy, so a directory may override only the
+ * kernels being worked on (and one written before a kernel file was added still builds).
+ * Returns a malloc'd, NUL-terminated copy, or NULL with a message.
  */
 static char *load_file(const char *dir, const char *name, char *err, size_t errlen) {
+  char path[4096];
+  if (dir != NULL) {
+    snprintf(path, sizeof path, "%s/%s", dir, name);
+    if (access(path, F_OK) != 0 && errno == ENOENT) {
+      for (const struct embedded_kernel *k = embedded_kernels; k->name; k++) {
+        if (strcmp(k->name, name) == 0)
+          dir = NULL;
+      }
+    }
+  }
   if (dir == NULL) {
     for (const struct embedded_kernel *k = embedded_kernels; k->name; k++) {
       if (strcmp(k->name, name) == 0)
@@ -270,8 +282,6 @@ static char *load_file(const char *dir, const char *name, char *err, size_t errl
     set_err(err, errlen, "[cl_dev_build] no embedded kernel file \"%s\"", name);
     return NULL;
   }
-  char path[4096];
-  snprintf(path, sizeof path, "%s/%s", dir, name);
   FILE *f = fopen(path, "rb");
   if (f == NULL) {
     set_err(err, errlen, "[cl_dev_build] cannot open %s: %s", path, strerror(errno));

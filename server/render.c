@@ -1,8 +1,9 @@
 /*
  * The renderer: it compiles a render_scene_t into the flat world-space records of
  * kernels/common.h, keeps a BVH of the scene's mesh triangles, and runs the passes of a frame
- * on the OpenCL device: "objects" (ray casting and shading), "tonemap", "readback" and
- * "encode" (PNG, on the host). Device buffers live across frames and only grow.
+ * on the OpenCL device: "objects" (ray casting and shading), "waves" (the energy waves'
+ * closed-form glow, added to the linear image, or their H as the wave_h AOV), "tonemap",
+ * "readback" and "encode" (PNG, on the host). Device buffers live across frames and only grow.
  *
  * One thread uses a renderer at a time (the render worker); it starts no threads of its own.
  */
@@ -45,8 +46,9 @@ typedef struct mesh_key {
 
 struct renderer {
   cl_dev_t dev;
-  cl_kernel objects, tonemap;
-  size_t objects_local[2], tonemap_local[2];
+  cl_kernel objects, tonemap, waves, waves_march;
+  size_t objects_local[2], tonemap_local[2], waves_local[2];
+  vfx_frame_t frame; /* The current frame's constants, as the objects pass set them up. */
 
   cl_mem linear, depth, rgba8; /* Per-pixel buffers, for cap_pixels pixels. */
   size_t cap_pixels;
@@ -55,6 +57,10 @@ struct renderer {
   size_t cap_objs;
   cl_mem nodes, tris; /* The mesh BVH, cap_nodes and cap_tris records. */
   size_t cap_nodes, cap_tris;
+  cl_mem wave_recs; /* Wave records, cap_waves floats. */
+  size_t cap_waves;
+  cl_mem hbuf; /* The wave_h AOV, cap_h pixels (allocated at the first wave_h frame). */
+  size_t cap_h;
 
   /* The BVH on the device holds these mesh objects. Comparing them each frame, rather than the
    * scene pointer, keeps the BVH across snapshots that changed other things (the camera, a
@@ -65,6 +71,8 @@ struct renderer {
 
   float *host_objs; /* Staging for the object records. */
   size_t host_objs_cap;
+  float *host_waves; /* Staging for the wave records. */
+  size_t host_waves_cap;
   unsigned char *scratch; /* Tone-mapped bytes waiting for the PNG encoder. */
   size_t scratch_cap;
 };
@@ -645,7 +653,8 @@ static size_t round_up(size_t n, size_t m) {
   return (n + m - 1) / m * m;
 }
 
-/* Runs the objects pass into r->linear and r->depth. Returns 0 or a PROTO_E_* code. */
+/* Runs the objects pass into r->linear and r->depth and keeps the frame's constants in
+ * r->frame for the passes after it. Returns 0 or a PROTO_E_* code. */
 static int pass_objects(renderer_t *r, const render_scene_t *scene, const render_params_t *p,
                         char *err, size_t errlen) {
   vfx_frame_t f;
@@ -701,6 +710,7 @@ static int pass_objects(renderer_t *r, const render_scene_t *scene, const render
     r->cap_pixels = npix;
   }
 
+  r->frame = f;
   cl_int cr = clEnqueueWriteBuffer(r->dev.queue, r->objs, CL_FALSE, 0, nobj * sizeof(float),
                                    r->host_objs, 0, NULL, NULL);
   cl_kernel k = r->objects;
@@ -726,6 +736,131 @@ static int pass_objects(renderer_t *r, const render_scene_t *scene, const render
             cl_dev_strerror(cr));
     return PROTO_E_DEVICE;
   }
+  return 0;
+}
+
+/*
+ * Packs the usable waves of 'scene' into r->host_waves as records for the eye 'eye' (WAVE_* of
+ * common.h), working in double so that the offsets from the eye are exact to float rounding.
+ * A wave with a zero or non-finite axis, a radius, softening or clamp that is not positive, or
+ * any non-finite number is left out (the scene model refuses them; this keeps the kernel safe
+ * whatever it is given). Returns the number packed, or -1 when out of memory.
+ */
+static int pack_waves(renderer_t *r, const render_scene_t *scene, const float eye[3]) {
+  size_t need = (size_t)(scene->nwaves > 0 ? scene->nwaves : 1) * WAVE_STRIDE;
+  if (need > r->host_waves_cap) {
+    float *p = realloc(r->host_waves, need * sizeof(float));
+    if (p == NULL)
+      return -1;
+    r->host_waves = p, r->host_waves_cap = need;
+  }
+  int n = 0;
+  for (int i = 0; i < scene->nwaves; i++) {
+    const rwave_t *wv = &scene->waves[i];
+    double d[3], len = 0,
+                 finite = wv->a + wv->b + wv->length + wv->radius + wv->softening + wv->clamp +
+                          wv->color[0] + wv->color[1] + wv->color[2];
+    for (int k = 0; k < 3; k++) {
+      d[k] = wv->direction[k];
+      len += d[k] * d[k];
+      finite += wv->center[k];
+    }
+    len = sqrt(len);
+    if (!isfinite(finite) || !(len > 0) || !isfinite(len) || !(wv->radius > 0) ||
+        !(wv->softening > 0) || !(wv->clamp > 0))
+      continue;
+    double w[3], s0 = 0, gp = 0, bl = wv->length > 0 ? wv->length : 0;
+    float *rec = r->host_waves + (size_t)n++ * WAVE_STRIDE;
+    memset(rec, 0, WAVE_STRIDE * sizeof(float));
+    for (int k = 0; k < 3; k++) {
+      d[k] /= len;
+      w[k] = (double)eye[k] - wv->center[k];
+      s0 += w[k] * d[k];
+    }
+    for (int k = 0; k < 3; k++) {
+      double wp = w[k] - s0 * d[k];
+      gp += wp * wp;
+      rec[WAVE_W + k] = (float)w[k];
+      rec[WAVE_D + k] = (float)d[k];
+      rec[WAVE_WP + k] = (float)wp;
+      rec[WAVE_BOUND + k] = (float)(w[k] - 0.5 * bl * d[k]);
+      rec[WAVE_COLOR + k] = wv->color[k];
+    }
+    rec[WAVE_S0] = (float)s0;
+    rec[WAVE_L] = (float)bl;
+    rec[WAVE_R2] = (float)((double)wv->radius * wv->radius);
+    rec[WAVE_EPS2] = (float)((double)wv->softening * wv->softening);
+    rec[WAVE_A] = wv->a;
+    rec[WAVE_B] = wv->b;
+    rec[WAVE_GP] = (float)gp;
+    /* Rounded up, so that the kernel's test in float never culls a ray that enters the wave. */
+    rec[WAVE_BOUND + 3] = (float)((wv->radius + 0.5 * bl) * 1.001 + 1e-6);
+    rec[WAVE_RADIUS] = wv->radius;
+    rec[WAVE_CLAMP] = wv->clamp;
+    rec[WAVE_INV_CLAMP] = (float)(1.0 / wv->clamp);
+  }
+  return n;
+}
+
+/*
+ * Runs the waves pass over the frame the objects pass set up: each ray is integrated from the
+ * near distance to r->depth. 'mode' is WAVES_ADD (glow into r->linear) or WAVES_STORE_H (H into
+ * r->hbuf); 'samples' > 0 swaps the closed form for a ray march of that many samples per wave.
+ * Sets '*ran' to whether there was a wave to draw. Returns 0 or a PROTO_E_* code.
+ */
+static int pass_waves(renderer_t *r, const render_scene_t *scene, int mode, int samples, int *ran,
+                      char *err, size_t errlen) {
+  *ran = 0;
+  int n = pack_waves(r, scene, r->frame.eye);
+  if (n < 0) {
+    set_err(err, errlen, "[render] out of memory for %d waves", scene->nwaves);
+    return PROTO_E_INTERNAL;
+  }
+  size_t npix = r->pitch * r->rows;
+  if (n == 0 && !(mode & WAVES_STORE_H))
+    return 0;
+  if (ensure_buffer(r, &r->wave_recs, &r->cap_waves, (size_t)(n ? n : 1) * WAVE_STRIDE,
+                    sizeof(float), CL_MEM_READ_ONLY, 1, err, errlen))
+    return PROTO_E_DEVICE;
+  if ((mode & WAVES_STORE_H) &&
+      ensure_buffer(r, &r->hbuf, &r->cap_h, npix, sizeof(float), CL_MEM_READ_WRITE, 0, err, errlen))
+    return PROTO_E_DEVICE;
+  /* Kernels take a buffer argument even when only one mode uses it. */
+  cl_mem hout = r->hbuf ? r->hbuf : r->depth;
+  cl_kernel k = samples > 0 ? r->waves_march : r->waves;
+  cl_int nw = n, md = mode, ns = samples;
+  cl_int cr = CL_SUCCESS;
+  if (n > 0)
+    cr =
+        clEnqueueWriteBuffer(r->dev.queue, r->wave_recs, CL_FALSE, 0,
+                             (size_t)n * WAVE_STRIDE * sizeof(float), r->host_waves, 0, NULL, NULL);
+  if (cr == CL_SUCCESS)
+    cr = clSetKernelArg(k, 0, sizeof r->frame, &r->frame);
+  if (cr == CL_SUCCESS)
+    cr = clSetKernelArg(k, 1, sizeof(cl_mem), &r->wave_recs);
+  if (cr == CL_SUCCESS)
+    cr = clSetKernelArg(k, 2, sizeof nw, &nw);
+  if (cr == CL_SUCCESS)
+    cr = clSetKernelArg(k, 3, sizeof(cl_mem), &r->depth);
+  if (cr == CL_SUCCESS)
+    cr = clSetKernelArg(k, 4, sizeof(cl_mem), &r->linear);
+  if (cr == CL_SUCCESS)
+    cr = clSetKernelArg(k, 5, sizeof(cl_mem), &hout);
+  if (cr == CL_SUCCESS)
+    cr = clSetKernelArg(k, 6, sizeof md, &md);
+  if (cr == CL_SUCCESS && samples > 0)
+    cr = clSetKernelArg(k, 7, sizeof ns, &ns);
+  size_t global[2] = {r->pitch / PACKET, r->rows};
+  if (cr == CL_SUCCESS)
+    cr = clEnqueueNDRangeKernel(r->dev.queue, k, 2, NULL, global, r->waves_local, 0, NULL, NULL);
+  if (cr == CL_SUCCESS)
+    cr = clFinish(r->dev.queue);
+  if (cr != CL_SUCCESS) {
+    set_err(err, errlen, "[render] waves pass failed on %s: %s", r->dev.device_name,
+            cl_dev_strerror(cr));
+    return PROTO_E_DEVICE;
+  }
+  *ran = n > 0;
   return 0;
 }
 
@@ -815,8 +950,9 @@ int renderer_render(renderer_t *r, const render_scene_t *scene, const render_par
   }
 
   size_t npix = (size_t)p->width * p->height;
-  if (p->aov == AOV_WAVE_H) {
-    /* No waves exist yet, so their summed H is zero everywhere; the waves pass will fill it. */
+  int waves = (p->layers & LAYER_WAVES) && scene->nwaves > 0 && p->aov != AOV_DEPTH;
+  if (p->aov == AOV_WAVE_H && !waves) {
+    /* Without waves to draw, their summed H is zero everywhere. */
     out->bytes = calloc(npix, sizeof(float));
     if (out->bytes == NULL) {
       set_err(err, errlen, "[render] out of memory for a %ux%u frame", p->width, p->height);
@@ -832,6 +968,16 @@ int renderer_render(renderer_t *r, const render_scene_t *scene, const render_par
   if (rc != 0)
     return rc;
   add_pass(out, "objects", now_ms() - t);
+
+  if (waves) {
+    t = now_ms();
+    int ran;
+    int mode = p->aov == AOV_WAVE_H ? WAVES_STORE_H : WAVES_ADD;
+    if ((rc = pass_waves(r, scene, mode, p->march_samples, &ran, err, errlen)) != 0)
+      return rc;
+    if (ran)
+      add_pass(out, "waves", now_ms() - t);
+  }
 
   size_t nbytes = (p->format == PROTO_FMT_RGBAF32 ? 16 : 4) * npix;
   unsigned char *bytes = NULL;
@@ -863,6 +1009,8 @@ int renderer_render(renderer_t *r, const render_scene_t *scene, const render_par
     rc = read_back(r, r->rgba8, 4, p, r->scratch, err, errlen);
   } else if (p->aov == AOV_DEPTH) {
     rc = read_back(r, r->depth, sizeof(float), p, bytes, err, errlen);
+  } else if (p->aov == AOV_WAVE_H) {
+    rc = read_back(r, r->hbuf, sizeof(float), p, bytes, err, errlen);
   } else if (p->format == PROTO_FMT_RGBAF32) {
     rc = read_back(r, r->linear, 4 * sizeof(float), p, bytes, err, errlen);
   } else {
@@ -917,6 +1065,15 @@ static int warm_up(renderer_t *r, char *err, size_t errlen) {
   static float tri[9] = {-0.5f, 0, 0, 0.5f, 0, 0, 0, 0.8f, 0};
   mesh_t mesh = {.ntri = 1, .tri = tri};
   atomic_init(&mesh.refs, 1);
+  rwave_t wave = {.center = {0, 0.5f, 0},
+                  .direction = {1, 0, 0},
+                  .a = 1,
+                  .b = 1,
+                  .length = 1,
+                  .radius = 1,
+                  .softening = 0.1f,
+                  .clamp = 4,
+                  .color = {1, 0.5f, 0.2f}};
   robject_t objs[4] = {
       {.shape = SHAPE_SPHERE, .position = {-1, 0.5f, 0}, .scale = {1, 1, 1}, .color = {1, 0, 0}},
       {.shape = SHAPE_BOX, .position = {1, 0.5f, 0}, .scale = {1, 1, 1}, .color = {0, 1, 0}},
@@ -933,6 +1090,8 @@ static int warm_up(renderer_t *r, char *err, size_t errlen) {
       .light = {.direction = {0, 1, 0}, .color = {1, 1, 1}, .intensity = 1, .ambient = 0.1f},
       .objects = objs,
       .nobjects = 4,
+      .waves = &wave,
+      .nwaves = 1,
       .tone_map = TONE_ACES,
   };
   atomic_init(&scene.refs, 1);
@@ -940,6 +1099,11 @@ static int warm_up(renderer_t *r, char *err, size_t errlen) {
   render_output_t out;
   int rc = renderer_render(r, &scene, &p, &out, err, errlen);
   free(out.bytes);
+  if (rc == 0) {
+    p.aov = AOV_WAVE_H, p.format = PROTO_FMT_F32;
+    rc = renderer_render(r, &scene, &p, &out, err, errlen);
+    free(out.bytes);
+  }
   /* Drop the BVH of the stack mesh before it goes out of scope. */
   bvh_forget(r);
   return rc;
@@ -959,7 +1123,9 @@ int renderer_create(const renderer_opts_t *opts, renderer_t **out, char *err, si
   if (cl_dev_build(&r->dev, opts ? opts->kernels_dir : NULL, build_options, err, errlen) != 0)
     goto fail;
   if ((r->objects = cl_dev_kernel(&r->dev, "objects", err, errlen)) == NULL ||
-      (r->tonemap = cl_dev_kernel(&r->dev, "tonemap", err, errlen)) == NULL)
+      (r->tonemap = cl_dev_kernel(&r->dev, "tonemap", err, errlen)) == NULL ||
+      (r->waves = cl_dev_kernel(&r->dev, "waves", err, errlen)) == NULL ||
+      (r->waves_march = cl_dev_kernel(&r->dev, "waves_march", err, errlen)) == NULL)
     goto fail;
   r->objects_local[0] = OBJECTS_LX;
   r->objects_local[1] = OBJECTS_LY;
@@ -967,6 +1133,13 @@ int renderer_create(const renderer_opts_t *opts, renderer_t **out, char *err, si
   r->tonemap_local[1] = TONEMAP_LY;
   fit_local(r, r->objects, r->objects_local, 2);
   fit_local(r, r->tonemap, r->tonemap_local, 2);
+  /* The waves kernels cover the objects pass's range, so they keep its local size if the device
+   * takes it, or halve it, which still divides the range. The march kernel only serves
+   * comparisons and is not warmed up. */
+  r->waves_local[0] = r->objects_local[0];
+  r->waves_local[1] = r->objects_local[1];
+  fit_local(r, r->waves, r->waves_local, 2);
+  fit_local(r, r->waves_march, r->waves_local, 2);
   /* The tone map covers the padded buffer, whose sides are multiples of the objects
    * work-group's pixels; the local sizes are powers of two, so this keeps them dividing. */
   while (r->tonemap_local[0] > PACKET * r->objects_local[0])
@@ -989,10 +1162,11 @@ void renderer_destroy(renderer_t *r) {
   /* Getting the binary out of PoCL compiles every kernel for every case (about a second),
    * so it is saved when the renderer goes away rather than delaying the first frame. The
    * next start loads it in milliseconds. */
-  if (r->objects && r->tonemap)
+  if (r->objects && r->tonemap && r->waves)
     cl_dev_save_binary(&r->dev);
   bvh_forget(r);
-  cl_mem bufs[] = {r->linear, r->depth, r->rgba8, r->objs, r->nodes, r->tris};
+  cl_mem bufs[] = {r->linear, r->depth, r->rgba8,     r->objs,
+                   r->nodes,  r->tris,  r->wave_recs, r->hbuf};
   for (size_t i = 0; i < sizeof bufs / sizeof bufs[0]; i++) {
     if (bufs[i])
       clReleaseMemObject(bufs[i]);
@@ -1001,8 +1175,13 @@ void renderer_destroy(renderer_t *r) {
     clReleaseKernel(r->objects);
   if (r->tonemap)
     clReleaseKernel(r->tonemap);
+  if (r->waves)
+    clReleaseKernel(r->waves);
+  if (r->waves_march)
+    clReleaseKernel(r->waves_march);
   cl_dev_close(&r->dev);
   free(r->host_objs);
+  free(r->host_waves);
   free(r->scratch);
   free(r);
 }

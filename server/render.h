@@ -39,6 +39,8 @@ typedef struct render_params {
   unsigned layers;         /* LAYER_* bits. */
   int png_level;           /* zlib level 0-9 for PNG; -1 picks the fast default. */
   const rcamera_t *camera; /* Overrides the scene's camera when not NULL. */
+  int march_samples;       /* 0: the waves' exact closed form. N > 0: a ray march of N samples
+                              per wave and ray instead, for comparisons (tests/bench). */
 } render_params_t;
 
 #define RENDER_MAX_PASSES 12
