@@ -2,8 +2,8 @@
  * The energy-wave pass (SPEC §5.1): for every pixel and every wave, the exact line integral H of
  * the wave's density along the camera ray, in closed form, from the near distance to the opaque
  * depth written by the objects pass. The result is added to the linear image as
- * min(H, c) / c * colour, and optionally stored unclamped (summed over the waves) as the wave_h
- * AOV. A second kernel, waves_march, integrates the same density by sampling, for comparison.
+ * smoothstep(min(H, c) / c) * colour, and optionally stored unclamped (summed over the waves)
+ * as the wave_h AOV. A second kernel, waves_march, integrates the same density by sampling, for comparison.
  *
  * The maths. A ray R(t) = S + t d with unit d and w = S - M (all per-wave scalars below are made
  * by the host, in double, from the eye and the wave; see WAVE_* in common.h). Every piece of the
@@ -218,6 +218,18 @@ static inline float8 wave_march(__global const float *restrict wv, const wave_ra
 }
 
 /*
+ * The brightness a wave gives for its integral 'h': t = min(h, c) / c through smoothstep,
+ * 3t² - 2t³. The thesis shows H clamped at c as brightness (eq. 2.12, §2.2.4); a linear map
+ * of it outlines the capsule, because H rises like the square root of the distance from the
+ * capsule's surface, and outlines the clamp, because the slope stops dead at c. Smoothstep's
+ * zero slope at both ends turns the first into a soft halo and the second into a smooth core.
+ */
+static inline float8 wave_glow(float8 h, __global const float *wv) {
+  float8 t = min(h, wv[WAVE_CLAMP]) * wv[WAVE_INV_CLAMP];
+  return t * t * fma(-2.0f, t, 3.0f);
+}
+
+/*
  * Adds the waves to the packet's pixel at buffer offset 'o': H summed into hout (when mode has
  * WAVES_STORE_H) and the clamped glow into the linear RGBA (when mode has WAVES_ADD).
  */
@@ -305,9 +317,8 @@ static inline int wave_in_packet(__global const float *restrict wv, const wave_w
  * buffers of the objects pass: 'depth' ends every ray (+INFINITY where nothing opaque was hit);
  * 'waves' holds 'nwaves' records of WAVE_STRIDE floats made for this frame's eye. 'mode' is a
  * set of WAVES_* bits; 'hout' receives the summed unclamped H when it asks for it. Each wave
- * adds min(H, c) / c times its colour to the linear RGB: the thesis shows H clamped at c as
- * brightness (eq. 2.12, §2.2.4), so a wave reaches its full colour where H >= c and fades
- * linearly with H below.
+ * adds wave_glow(H) times its colour to the linear RGB: its full colour where H >= c, fading
+ * smoothly to nothing as H falls to 0.
  */
 __kernel void waves(vfx_frame_t f, __global const float *restrict waves, int nwaves,
                     __global const float *restrict depth, __global float *restrict linear,
@@ -328,7 +339,7 @@ __kernel void waves(vfx_frame_t f, __global const float *restrict waves, int nwa
     if (!any(w.hi > w.lo))
       continue;
     float8 h = wave_exact(wv, &w);
-    float8 g = min(h, wv[WAVE_CLAMP]) * wv[WAVE_INV_CLAMP];
+    float8 g = wave_glow(h, wv);
     hsum += h;
     gr = fma(g, wv[WAVE_COLOR], gr);
     gg = fma(g, wv[WAVE_COLOR + 1], gg);
@@ -359,7 +370,7 @@ __kernel void waves_march(vfx_frame_t f, __global const float *restrict waves, i
     if (!any(w.hi > w.lo))
       continue;
     float8 h = wave_march(wv, &w, samples);
-    float8 g = min(h, wv[WAVE_CLAMP]) * wv[WAVE_INV_CLAMP];
+    float8 g = wave_glow(h, wv);
     hsum += h;
     gr = fma(g, wv[WAVE_COLOR], gr);
     gg = fma(g, wv[WAVE_COLOR + 1], gg);

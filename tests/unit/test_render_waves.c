@@ -5,7 +5,8 @@
  * inside the capsule, found by searching the distance to the segment rather than by solving
  * the quadratics the kernel solves. The renderer's wave_h AOV must agree within 1e-4 relative
  * for random waves and cameras and for each degenerate case; an opaque box must end the
- * integral at its depth; the beauty image must gain exactly min(H, c) / c times the colour.
+ * integral at its depth; the beauty image must gain exactly smoothstep(min(H, c) / c) times the
+ * colour.
  * Scenes are built as render_scene_t structs. Exits non-zero on any failure.
  */
 #include <math.h>
@@ -606,8 +607,14 @@ static void test_occlusion(void) {
   free(cut), free(whole);
 }
 
-/* The beauty image is the objects' image plus min(H, c) / c times the colour, before the tone
- * map; the wave_h AOV sums the waves unclamped. */
+/* The brightness of a wave: smoothstep of min(H, c) / c (kernels/waves.cl, wave_glow). */
+static double glow(double h, double c) {
+  double t = fmin(h, c) / c;
+  return t * t * (3 - 2 * t);
+}
+
+/* The beauty image is the objects' image plus glow(H) times the colour, before the tone map;
+ * the wave_h AOV sums the waves unclamped. */
 static void test_compositing(void) {
   rwave_t w[2] = {{.center = {0, 0, 0},
                    .direction = {1, 0, 0},
@@ -661,7 +668,7 @@ static void test_compositing(void) {
     for (int ch = 0; ch < 3; ch++) {
       double want = base[4 * i + ch];
       for (int k = 0; k < 2; k++)
-        want += fmin(h[k][i], w[k].clamp) / w[k].clamp * w[k].color[ch];
+        want += glow(h[k][i], w[k].clamp) * w[k].color[ch];
       if (fabs(lit[4 * i + ch] - want) > 1e-5 * fmax(want, 1) && bad++ < 4)
         fprintf(stderr, "  pixel %d channel %d: %.7g, objects + glow %.7g\n", i, ch,
                 lit[4 * i + ch], want);
@@ -671,7 +678,7 @@ static void test_compositing(void) {
     if (lit[4 * i + 3] != 1.0f && bad++ < 4)
       fprintf(stderr, "  pixel %d: alpha %g over an opaque background\n", i, lit[4 * i + 3]);
   }
-  CHECK(bad == 0, "%d beauty values differ from objects + min(H, c) / c * colour", bad);
+  CHECK(bad == 0, "%d beauty values differ from objects + glow(H) * colour", bad);
   CHECK(clamped > 0 && glowing > 0,
         "the test image should hold clamped (%d) and unclamped (%d) "
         "glow",
