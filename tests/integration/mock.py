@@ -294,6 +294,9 @@ class Server:
         self._lines.put(None)
 
     def __enter__(self):
+        # A server already started (by a helper that probed it) is not started a second time.
+        if self.proc is not None and self.proc.poll() is None:
+            return self
         return self.start()
 
     def __exit__(self, et, ev, tb):
