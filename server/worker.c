@@ -1,7 +1,9 @@
 /*
- * The render worker thread and its two queues: 'todo' (loop → worker) and 'done' (worker →
- * loop). Both are guarded by one mutex; the worker sleeps on a condition variable and wakes
- * the loop with uv_async_send, which coalesces, so the loop drains every finished job at once.
+ * The render worker thread, the PNG encoder thread, and their queues: 'todo' (loop → worker),
+ * 'encode' (worker → encoder) and 'done' (worker or encoder → loop). All are guarded by one
+ * mutex; the threads sleep on condition variables and wake the loop with uv_async_send, which
+ * coalesces, so the loop drains every finished job at once. PNG encoding runs on its own thread
+ * so that a stream of frames overlaps the encoding of one frame with the rendering of the next.
  */
 #include "worker.h"
 
@@ -17,11 +19,15 @@ struct worker {
   uv_thread_t thread;
   uv_mutex_t mu;
   uv_cond_t cv;
+  uv_thread_t encoder;
+  uv_cond_t encode_cv;
   job_t *todo_head, *todo_tail;
+  job_t *encode_head, *encode_tail;
   job_t *done_head, *done_tail;
   int depth;
   int max_queue;
-  int stop;
+  int stop;        /* The render thread stops. */
+  int encode_stop; /* The encoder stops once its queue is empty (set after 'stop' is joined). */
   renderer_t *renderer;
 };
 
@@ -56,11 +62,72 @@ static void worker_main(void *arg) {
     j->t_started_ns = mono_ns();
     if (j->has_camera)
       j->params.camera = &j->camera;
+    /* A PNG frame is rendered as RGBA8 here and encoded by the encoder thread. */
+    int png = j->params.format == PROTO_FMT_PNG;
+    if (png)
+      j->params.format = PROTO_FMT_RGBA8;
     j->code = renderer_render(w->renderer, j->scene, &j->params, &j->out, j->err, sizeof j->err);
     j->t_done_ns = mono_ns();
     render_scene_unref(j->scene);
     j->scene = NULL;
 
+    uv_mutex_lock(&w->mu);
+    if (png) {
+      j->params.format = PROTO_FMT_PNG;
+      if (j->code == 0) {
+        push(&w->encode_head, &w->encode_tail, j);
+        uv_cond_signal(&w->encode_cv);
+        continue;
+      }
+    }
+    push(&w->done_head, &w->done_tail, j);
+    uv_async_send(&w->async);
+  }
+  uv_mutex_unlock(&w->mu);
+}
+
+/* Encodes one rendered RGBA8 frame as PNG in place, recording the "encode" pass. */
+static void encode_job(job_t *j) {
+  uint64_t t0 = mono_ns();
+  unsigned char *png = NULL;
+  size_t n = 0;
+  if (encode_png(j->out.bytes, j->params.width, j->params.height, j->params.png_level, &png, &n) !=
+      0) {
+    j->code = PROTO_E_INTERNAL;
+    snprintf(j->err, sizeof j->err, "PNG encoding of a %ux%u frame failed", j->params.width,
+             j->params.height);
+    free(j->out.bytes);
+    j->out.bytes = NULL;
+    j->out.nbytes = 0;
+    return;
+  }
+  free(j->out.bytes);
+  j->out.bytes = png;
+  j->out.nbytes = n;
+  double ms = (double)(mono_ns() - t0) / 1e6;
+  if (j->out.npasses < RENDER_MAX_PASSES) {
+    j->out.passes[j->out.npasses].name = "encode";
+    j->out.passes[j->out.npasses++].ms = ms;
+  }
+  j->out.total_ms += ms;
+  j->t_done_ns = mono_ns();
+}
+
+/* The encoder thread: runs until stopped and its queue is empty. */
+static void encoder_main(void *arg) {
+  worker_t *w = arg;
+  uv_mutex_lock(&w->mu);
+  for (;;) {
+    while (!w->encode_head && !w->encode_stop)
+      uv_cond_wait(&w->encode_cv, &w->mu);
+    job_t *j = w->encode_head;
+    if (!j)
+      break; /* Stopped, and nothing left to encode. */
+    w->encode_head = j->next;
+    if (!w->encode_head)
+      w->encode_tail = NULL;
+    uv_mutex_unlock(&w->mu);
+    encode_job(j);
     uv_mutex_lock(&w->mu);
     push(&w->done_head, &w->done_tail, j);
     uv_async_send(&w->async);
@@ -91,10 +158,21 @@ worker_t *worker_start(uv_loop_t *loop, renderer_t *r, int max_queue) {
   w->max_queue = max_queue;
   uv_mutex_init(&w->mu);
   uv_cond_init(&w->cv);
+  uv_cond_init(&w->encode_cv);
   uv_async_init(loop, &w->async, on_async);
   w->async.data = w;
   if (uv_thread_create(&w->thread, worker_main, w) != 0) {
     LOG(LOG_ERROR, "worker", "cannot start the render thread");
+    uv_close((uv_handle_t *)&w->async, NULL);
+    return NULL;
+  }
+  if (uv_thread_create(&w->encoder, encoder_main, w) != 0) {
+    LOG(LOG_ERROR, "worker", "cannot start the encoder thread");
+    uv_mutex_lock(&w->mu);
+    w->stop = 1;
+    uv_cond_signal(&w->cv);
+    uv_mutex_unlock(&w->mu);
+    uv_thread_join(&w->thread);
     uv_close((uv_handle_t *)&w->async, NULL);
     return NULL;
   }
@@ -126,6 +204,7 @@ static void on_async_closed(uv_handle_t *h) {
   worker_t *w = h->data;
   uv_mutex_destroy(&w->mu);
   uv_cond_destroy(&w->cv);
+  uv_cond_destroy(&w->encode_cv);
   free(w);
 }
 
@@ -138,6 +217,12 @@ void worker_stop(worker_t *w) {
   uv_cond_signal(&w->cv);
   uv_mutex_unlock(&w->mu);
   uv_thread_join(&w->thread);
+  /* Only now can nothing more reach the encoder; it finishes its queue, then exits. */
+  uv_mutex_lock(&w->mu);
+  w->encode_stop = 1;
+  uv_cond_signal(&w->encode_cv);
+  uv_mutex_unlock(&w->mu);
+  uv_thread_join(&w->encoder);
 
   /* Jobs the worker finished, then jobs it never started, all answered on this thread. */
   on_async(&w->async);
