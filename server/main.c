@@ -93,6 +93,14 @@ int main(int argc, char **argv) {
     return 1;
   }
 
+  /* Signals first: every path out of here, even a failed start, goes through the stop, which
+   * closes them. */
+  uv_signal_init(s->loop, &s->sigint);
+  uv_signal_init(s->loop, &s->sigterm);
+  s->sigint.data = s->sigterm.data = s;
+  uv_signal_start(&s->sigint, on_signal, SIGINT);
+  uv_signal_start(&s->sigterm, on_signal, SIGTERM);
+
   scene_error_t serr = {0};
   if (!server_add_scene(s, "main", s->cfg.scene[0] ? s->cfg.scene : NULL, &serr)) {
     LOG(LOG_ERROR, "scene", "cannot load the main scene: %s%s%s", serr.message,
@@ -102,12 +110,6 @@ int main(int argc, char **argv) {
     uv_loop_close(s->loop);
     return 1;
   }
-
-  uv_signal_init(s->loop, &s->sigint);
-  uv_signal_init(s->loop, &s->sigterm);
-  s->sigint.data = s->sigterm.data = s;
-  uv_signal_start(&s->sigint, on_signal, SIGINT);
-  uv_signal_start(&s->sigterm, on_signal, SIGTERM);
 
   int exit_code = 0;
   if (net_listen(s) != 0) {
