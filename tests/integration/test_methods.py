@@ -938,5 +938,30 @@ def all_error_codes_seen(s):
         s.note("-32002 was not produced (accepted: the device kept up)")
 
 
+@T
+def subscription_ends_with_its_scene(s):
+    c = s.srv.connect(timeout=30)
+    c.ok("scene.create", {"name": "doomed"})
+    sub, _ = c.ok("frames.subscribe", {"scene": "doomed", "width": 16, "height": 16, "fps": 20})
+    msg, att = c.recv(timeout=30)
+    s.eq(msg.get("method"), "frames", "a frame arrives before the delete")
+    # Responses and notifications interleave: read until the delete's answer and the end.
+    c.send(c.request("scene.delete", {"name": "doomed"}, id=77))
+    ended, answered = None, False
+    for _ in range(200):
+        msg, _ = c.recv(timeout=30)
+        if msg.get("id") == 77:
+            answered = "result" in msg
+        elif msg.get("method") == "frames.ended":
+            ended = msg.get("params")
+        if answered and ended:
+            break
+    s.check(answered, "scene.delete answered", "")
+    s.eq(ended, {"id": sub["id"], "reason": "scene deleted"}, "frames.ended notification")
+    mock.expect_error(s, c, "frames.unsubscribe", {"id": sub["id"]}, E_NOT_FOUND, "id",
+                      "the ended subscription is gone")
+    c.close()
+
+
 if __name__ == "__main__":
     sys.exit(suite.main())
