@@ -79,6 +79,10 @@ typedef struct vfx_frame {
 #define TRI_COLOR 9
 #define TRI_STRIDE 10
 
+/* Pixels a tonemap work-item converts: the pass launches pitch / TONEMAP_PACKET work-items per
+ * row. */
+#define TONEMAP_PACKET 16
+
 /* Tone-map operators, matching tone_map_t in render_scene.h. */
 #define TONE_OP_NONE 0
 #define TONE_OP_REINHARD 1
@@ -107,6 +111,10 @@ typedef struct vfx_frame {
 #define WAVE_COLOR 22
 #define WAVE_RADIUS 25
 #define WAVE_STRIDE 28
+
+/* Pixels of a row that a waves work-item shades, one per vector lane: 16 fills AVX-512's
+ * registers. The waves pass launches pitch / WAVES_PACKET work-items per row. */
+#define WAVES_PACKET 16
 
 /* Bits of the waves kernels' 'mode'. */
 #define WAVES_ADD 1     /* Add the clamped glow to the linear image. */

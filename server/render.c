@@ -22,12 +22,14 @@
 /*
  * Fixed local sizes: PoCL compiles a kernel once per local size, at its first launch. An
  * objects work-item covers a packet of PACKET pixels in a row, so its work-group covers
- * 32x8 pixels; the per-pixel buffers are padded to whole work-groups.
+ * 32x8 pixels; a waves or tonemap work-item covers WAVES_PACKET or TONEMAP_PACKET pixels
+ * (common.h), and their work-groups cover the same 32x8. The per-pixel buffers are padded to
+ * whole work-groups of every pass.
  */
 #define PACKET 8
 #define OBJECTS_LX 4
 #define OBJECTS_LY 8
-#define TONEMAP_LX 32
+#define TONEMAP_LX (PACKET * OBJECTS_LX / TONEMAP_PACKET)
 #define TONEMAP_LY 8
 
 #define MAX_SIDE 16384 /* Largest width or height the renderer accepts, whatever the limits. */
@@ -653,13 +655,24 @@ static size_t round_up(size_t n, size_t m) {
   return (n + m - 1) / m * m;
 }
 
+/* The pixels of a row that the padded buffers' pitch is a multiple of: the widest work-group of
+ * the passes. The widths are powers of two, so each of them divides it. */
+static size_t row_pixels(const renderer_t *r) {
+  size_t n = PACKET * r->objects_local[0];
+  if (n < WAVES_PACKET * r->waves_local[0])
+    n = WAVES_PACKET * r->waves_local[0];
+  if (n < TONEMAP_PACKET * r->tonemap_local[0])
+    n = TONEMAP_PACKET * r->tonemap_local[0];
+  return n;
+}
+
 /* Runs the objects pass into r->linear and r->depth and keeps the frame's constants in
  * r->frame for the passes after it. Returns 0 or a PROTO_E_* code. */
 static int pass_objects(renderer_t *r, const render_scene_t *scene, const render_params_t *p,
                         char *err, size_t errlen) {
   vfx_frame_t f;
   memset(&f, 0, sizeof f);
-  r->pitch = round_up(p->width, PACKET * r->objects_local[0]);
+  r->pitch = round_up(p->width, row_pixels(r));
   r->rows = round_up(p->height, r->objects_local[1]);
   f.width = (int)p->width;
   f.height = (int)p->height;
@@ -850,7 +863,7 @@ static int pass_waves(renderer_t *r, const render_scene_t *scene, int mode, int 
     cr = clSetKernelArg(k, 6, sizeof md, &md);
   if (cr == CL_SUCCESS && samples > 0)
     cr = clSetKernelArg(k, 7, sizeof ns, &ns);
-  size_t global[2] = {r->pitch / PACKET, r->rows};
+  size_t global[2] = {r->pitch / WAVES_PACKET, r->rows};
   if (cr == CL_SUCCESS)
     cr = clEnqueueNDRangeKernel(r->dev.queue, k, 2, NULL, global, r->waves_local, 0, NULL, NULL);
   if (cr == CL_SUCCESS)
@@ -889,7 +902,7 @@ static int pass_tonemap(renderer_t *r, const render_scene_t *scene, char *err, s
     cr = clSetKernelArg(k, 2, sizeof scale, &scale);
   if (cr == CL_SUCCESS)
     cr = clSetKernelArg(k, 3, sizeof op, &op);
-  size_t global[2] = {r->pitch, r->rows};
+  size_t global[2] = {r->pitch / TONEMAP_PACKET, r->rows};
   if (cr == CL_SUCCESS)
     cr = clEnqueueNDRangeKernel(r->dev.queue, k, 2, NULL, global, r->tonemap_local, 0, NULL, NULL);
   if (cr == CL_SUCCESS)
@@ -1133,17 +1146,18 @@ int renderer_create(const renderer_opts_t *opts, renderer_t **out, char *err, si
   r->tonemap_local[1] = TONEMAP_LY;
   fit_local(r, r->objects, r->objects_local, 2);
   fit_local(r, r->tonemap, r->tonemap_local, 2);
-  /* The waves kernels cover the objects pass's range, so they keep its local size if the device
-   * takes it, or halve it, which still divides the range. The march kernel only serves
+  /* The waves kernels cover the objects pass's pixels with wider work-items, so they keep its
+   * work-group's pixels if the device takes them, or halve them. The march kernel only serves
    * comparisons and is not warmed up. */
-  r->waves_local[0] = r->objects_local[0];
+  r->waves_local[0] = r->objects_local[0] * PACKET / WAVES_PACKET;
+  if (r->waves_local[0] == 0)
+    r->waves_local[0] = 1;
   r->waves_local[1] = r->objects_local[1];
   fit_local(r, r->waves, r->waves_local, 2);
   fit_local(r, r->waves_march, r->waves_local, 2);
-  /* The tone map covers the padded buffer, whose sides are multiples of the objects
-   * work-group's pixels; the local sizes are powers of two, so this keeps them dividing. */
-  while (r->tonemap_local[0] > PACKET * r->objects_local[0])
-    r->tonemap_local[0] /= 2;
+  /* Every local size is a power of two and the padded rows are a multiple of the widest
+   * work-group (row_pixels); the rows are a multiple of the objects work-group's, so the tone
+   * map's must not be taller. */
   while (r->tonemap_local[1] > r->objects_local[1])
     r->tonemap_local[1] /= 2;
   if (warm_up(r, err, errlen) != 0)
