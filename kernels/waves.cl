@@ -246,10 +246,12 @@ static inline wfloat wave_exact(__global const float *restrict wv, const wave_ra
   wfloat mid = clamp(w->t0, w->lo, w->hi);
   wfloat inv_d = wave_rsqrt(w->v2 + eps2);
   wint ahead = w->k > 0.0f;
-  wfloat first = wave_sphere_span(w->lo, mid, w->bm, inv_d);
-  wfloat second = wave_sphere_span(mid, w->hi, w->bm, inv_d);
-  wfloat h = first * select((wfloat)a, (wfloat)(a + b), ahead) +
-             second * select((wfloat)(a + b), (wfloat)a, ahead);
+  /* Each side is skipped when it is empty for the whole packet, as inside the beam's body. */
+  wfloat h = 0.0f;
+  if (any(mid > w->lo))
+    h = wave_sphere_span(w->lo, mid, w->bm, inv_d) * select((wfloat)a, (wfloat)(a + b), ahead);
+  if (any(w->hi > mid))
+    h += wave_sphere_span(mid, w->hi, w->bm, inv_d) * select((wfloat)(a + b), (wfloat)a, ahead);
   if (b == 0.0f)
     return h;
 
