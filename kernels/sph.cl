@@ -1,0 +1,233 @@
+/*
+ * SPH after Müller et al. 2003 for server/sim_fluid.c: sph_density (poly6 density, then the
+ * pressure of p = k (rho - rho0), never negative) and sph_forces (spiky pressure gradient,
+ * viscosity Laplacian, gravity, then a symplectic Euler step and the colliders). The host
+ * sorts the particles by grid cell before every substep, so a particle's neighbours are nine
+ * contiguous runs of the arrays (three x-adjacent cells are adjacent in memory) and every sum
+ * runs in the same order on every run: the results are deterministic.
+ *
+ * State layout: one float buffer of 6 * stride floats, px | py | pz | vx | vy | vz.
+ * 'cell_start' has nx * ny * nz + 1 entries: cell c holds particles cell_start[c] up to
+ * cell_start[c + 1]. Cells are keyed ((z * ny) + y) * nx + x from floor((p - origin) * inv_cell),
+ * computed exactly as the host does.
+ */
+
+#define SPH_LOCAL 64 /* The local size of both kernels; sim_fluid.c uses the same. */
+
+/* Collider records of SPHC_STRIDE floats: kind, centre, the rotation R (row-major, world =
+ * R * object), semi extents (box) or semi-axes (ellipsoid). */
+#define SPHC_KIND 0
+#define SPHC_CENTER 1
+#define SPHC_ROT 4
+#define SPHC_HALF 13
+#define SPHC_STRIDE 16
+#define SPHC_SPHERE 0
+#define SPHC_BOX 1
+#define SPHC_PLANE 2
+
+#define SPH_WALL_N 64 /* Intervals of the wall tables over [0, h]; sim_fluid.c uses the same. */
+
+/* Grid cell of one coordinate, clamped to the grid. */
+inline int sph_cell(float p, float origin, float inv_cell, int n) {
+  int c = (int)floor((p - origin) * inv_cell);
+  return clamp(c, 0, n - 1);
+}
+
+/*
+ * Table 'tab' (SPH_WALL_N + 1 samples over [0, h]) at distance 'd' from a wall, linearly
+ * interpolated; 0 from h on.
+ */
+inline float sph_wall(__global const float *tab, float d, float inv_h) {
+  float u = clamp(d * inv_h, 0.0f, 1.0f) * SPH_WALL_N;
+  int k = min((int)u, SPH_WALL_N - 1);
+  float f = u - (float)k;
+  return tab[k] + f * (tab[k + 1] - tab[k]);
+}
+
+/* Per axis, the fraction of a particle's density that the fluid beyond the walls adds. */
+inline float3 sph_fill(__global const float *wall, float x, float y, float z, float inv_h,
+                       float bx0, float by0, float bz0, float bx1, float by1, float bz1,
+                       float rest_density) {
+  float3 f = (float3)(sph_wall(wall, x - bx0, inv_h) + sph_wall(wall, bx1 - x, inv_h),
+                      sph_wall(wall, y - by0, inv_h) + sph_wall(wall, by1 - y, inv_h),
+                      sph_wall(wall, z - bz0, inv_h) + sph_wall(wall, bz1 - z, inv_h));
+  return fmin(f / rest_density, 1.0f);
+}
+
+__kernel __attribute__((reqd_work_group_size(SPH_LOCAL, 1, 1))) void
+sph_density(__global const float *state, int stride, int n, __global const int *cell_start,
+            int nx, int ny, int nz, float ox, float oy, float oz, float inv_cell, float h,
+            float mass_kernel, float rest_density, float stiffness, __global const float *wall,
+            float inv_h, float bx0, float by0, float bz0, float bx1, float by1, float bz1,
+            __global float *rho_out, __global float *p_out) {
+  int i = get_global_id(0);
+  if (i >= n)
+    return;
+  __global const float *px = state, *py = state + stride, *pz = state + 2 * stride;
+  float xi = px[i], yi = py[i], zi = pz[i];
+  int cx = sph_cell(xi, ox, inv_cell, nx), cy = sph_cell(yi, oy, inv_cell, ny),
+      cz = sph_cell(zi, oz, inv_cell, nz);
+  int x0 = max(cx - 1, 0), x1 = min(cx + 1, nx - 1);
+  float sum = 0.0f;
+  for (int z = max(cz - 1, 0); z <= min(cz + 1, nz - 1); z++) {
+    for (int y = max(cy - 1, 0); y <= min(cy + 1, ny - 1); y++) {
+      int row = (z * ny + y) * nx;
+      int end = cell_start[row + x1 + 1];
+      for (int j = cell_start[row + x0]; j < end; j++) {
+        float dx = xi - px[j], dy = yi - py[j], dz = zi - pz[j];
+        float w = fmax(h - sqrt(dx * dx + dy * dy + dz * dz), 0.0f);
+        sum += w * w * w;
+      }
+    }
+  }
+  /* The tank's walls stand for the fluid that would lie beyond them (the wall weight of
+   * Harada et al. 2007), so particles beside a wall are not thinned out. Per axis, f is the
+   * fraction of a full neighbourhood that lies beyond that axis' walls; near an edge or a
+   * corner the regions beyond two walls overlap, and 1 - (1 - fx)(1 - fy)(1 - fz) counts
+   * the overlap once (exactly so for a separable kernel, closely for poly6). */
+  float3 f = sph_fill(wall, xi, yi, zi, inv_h, bx0, by0, bz0, bx1, by1, bz1, rest_density);
+  float rho = mass_kernel * sum + rest_density * (1.0f - (1.0f - f.x) * (1.0f - f.y) * (1.0f - f.z));
+  rho_out[i] = rho;
+  p_out[i] = fmax(stiffness * (rho - rest_density), 0.0f);
+}
+
+/* Pushes (x, v) out of collider record 'c' and removes the velocity into its surface. */
+inline void sph_collide(__global const float *c, float3 *x, float3 *v) {
+  float3 ctr = (float3)(c[SPHC_CENTER], c[SPHC_CENTER + 1], c[SPHC_CENTER + 2]);
+  float3 r0 = (float3)(c[SPHC_ROT], c[SPHC_ROT + 1], c[SPHC_ROT + 2]);
+  float3 r1 = (float3)(c[SPHC_ROT + 3], c[SPHC_ROT + 4], c[SPHC_ROT + 5]);
+  float3 r2 = (float3)(c[SPHC_ROT + 6], c[SPHC_ROT + 7], c[SPHC_ROT + 8]);
+  float3 semi = (float3)(c[SPHC_HALF], c[SPHC_HALF + 1], c[SPHC_HALF + 2]);
+  float3 d = *x - ctr;
+  /* Object-space offset q = R^T d; R's columns are the object's axes in the world. */
+  float3 q = r0 * d.x + r1 * d.y + r2 * d.z;
+  int kind = (int)c[SPHC_KIND];
+  float3 qn; /* The surface point, object space. */
+  float3 nrm; /* Outward normal, object space (unnormalised). */
+  int inside;
+  if (kind == SPHC_SPHERE) {
+    float3 u = q / semi;
+    float len = length(u);
+    inside = len < 1.0f;
+    float3 dir = len > 1e-12f ? u / len : (float3)(0.0f, 1.0f, 0.0f);
+    qn = dir * semi;
+    nrm = dir / semi;
+  } else if (kind == SPHC_BOX) {
+    float3 pen = semi - fabs(q);
+    inside = pen.x > 0.0f && pen.y > 0.0f && pen.z > 0.0f;
+    qn = q;
+    nrm = (float3)(0.0f);
+    if (pen.x <= pen.y && pen.x <= pen.z) {
+      qn.x = copysign(semi.x, q.x);
+      nrm.x = copysign(1.0f, q.x);
+    } else if (pen.y <= pen.z) {
+      qn.y = copysign(semi.y, q.y);
+      nrm.y = copysign(1.0f, q.y);
+    } else {
+      qn.z = copysign(semi.z, q.z);
+      nrm.z = copysign(1.0f, q.z);
+    }
+  } else {
+    inside = q.y < 0.0f;
+    qn = (float3)(q.x, 0.0f, q.z);
+    nrm = (float3)(0.0f, 1.0f, 0.0f);
+  }
+  if (!inside)
+    return;
+  /* Back to the world: world = R * object. */
+  float3 c0 = (float3)(r0.x, r1.x, r2.x), c1 = (float3)(r0.y, r1.y, r2.y),
+         c2 = (float3)(r0.z, r1.z, r2.z);
+  *x = ctr + c0 * qn.x + c1 * qn.y + c2 * qn.z;
+  float3 n = normalize(c0 * nrm.x + c1 * nrm.y + c2 * nrm.z);
+  float vn = dot(*v, n);
+  if (vn < 0.0f)
+    *v -= vn * n;
+}
+
+__kernel __attribute__((reqd_work_group_size(SPH_LOCAL, 1, 1))) void
+sph_forces(__global const float *state, int stride, int n, __global const int *cell_start,
+           int nx, int ny, int nz, float ox, float oy, float oz, float inv_cell, float h,
+           __global const float *rho, __global const float *pres, float mass_spiky,
+           float mass_visc, float gx, float gy, float gz, float dt, float vmax,
+           __global const float *colliders, int ncolliders, float bx0, float by0, float bz0,
+           float bx1, float by1, float bz1, __global const float *wall, float inv_h,
+           float rest_density, float viscosity, __global float *out) {
+  int i = get_global_id(0);
+  if (i >= n)
+    return;
+  __global const float *px = state, *py = state + stride, *pz = state + 2 * stride;
+  __global const float *vx = state + 3 * stride, *vy = state + 4 * stride,
+                       *vz = state + 5 * stride;
+  float xi = px[i], yi = py[i], zi = pz[i];
+  float uxi = vx[i], uyi = vy[i], uzi = vz[i];
+  float pi_rho = pres[i];
+  float pi_r2 = pi_rho / (rho[i] * rho[i]);
+  int cx = sph_cell(xi, ox, inv_cell, nx), cy = sph_cell(yi, oy, inv_cell, ny),
+      cz = sph_cell(zi, oz, inv_cell, nz);
+  int x0 = max(cx - 1, 0), x1 = min(cx + 1, nx - 1);
+  /* Pressure and viscosity force sums, without the constant factors. */
+  float fpx = 0.0f, fpy = 0.0f, fpz = 0.0f, fvx = 0.0f, fvy = 0.0f, fvz = 0.0f;
+  for (int z = max(cz - 1, 0); z <= min(cz + 1, nz - 1); z++) {
+    for (int y = max(cy - 1, 0); y <= min(cy + 1, ny - 1); y++) {
+      int row = (z * ny + y) * nx;
+      int end = cell_start[row + x1 + 1];
+      for (int j = cell_start[row + x0]; j < end; j++) {
+        float dx = xi - px[j], dy = yi - py[j], dz = zi - pz[j];
+        float r2 = dx * dx + dy * dy + dz * dz;
+        float r = sqrt(r2);
+        float q = fmax(h - r, 0.0f);
+        float inv_rho = 1.0f / rho[j];
+        /* The spiky gradient along (xi - xj) / r pushes i away from j; r = 0 (i itself, or
+         * a particle exactly on top of it) contributes nothing. */
+        float s = r > 1e-9f ? (pi_r2 + pres[j] * inv_rho * inv_rho) * q * q / r : 0.0f;
+        fpx += s * dx, fpy += s * dy, fpz += s * dz;
+        float t = q * inv_rho;
+        fvx += t * (vx[j] - uxi), fvy += t * (vy[j] - uyi), fvz += t * (vz[j] - uzi);
+      }
+    }
+  }
+  float inv_rho_i = 1.0f / rho[i];
+  /* The walls push back with the pressure of the fluid they stand for, taken equal to this
+   * particle's: Müller's pressure force with p_j = p_i and rho_j = rho_i. An axis' push is
+   * scaled by the fractions not beyond the other axes' walls, as in sph_density. */
+  __global const float *grad = wall + SPH_WALL_N + 1;
+  float pw = pi_rho * inv_rho_i * inv_rho_i;
+  float3 f = 1.0f - sph_fill(wall, xi, yi, zi, inv_h, bx0, by0, bz0, bx1, by1, bz1, rest_density);
+  float3 fw = (float3)(sph_wall(grad, xi - bx0, inv_h) - sph_wall(grad, bx1 - xi, inv_h),
+                       sph_wall(grad, yi - by0, inv_h) - sph_wall(grad, by1 - yi, inv_h),
+                       sph_wall(grad, zi - bz0, inv_h) - sph_wall(grad, bz1 - zi, inv_h)) *
+              (float3)(f.y * f.z, f.x * f.z, f.x * f.y);
+  /* The walls are no-slip: they drag like fluid at rest, Müller's viscosity with v_j = 0. */
+  __global const float *lap = wall + 2 * (SPH_WALL_N + 1);
+  float drag = sph_wall(lap, xi - bx0, inv_h) + sph_wall(lap, bx1 - xi, inv_h) +
+               sph_wall(lap, yi - by0, inv_h) + sph_wall(lap, by1 - yi, inv_h) +
+               sph_wall(lap, zi - bz0, inv_h) + sph_wall(lap, bz1 - zi, inv_h);
+  float kv = viscosity * drag * inv_rho_i * inv_rho_i;
+  float3 a = (float3)(gx, gy, gz) + pw * fw - kv * (float3)(uxi, uyi, uzi) +
+             mass_spiky * (float3)(fpx, fpy, fpz) + inv_rho_i * mass_visc * (float3)(fvx, fvy, fvz);
+  float3 v = (float3)(uxi, uyi, uzi) + dt * a;
+  /* The speed limit (the sound speed) keeps a broken state from blowing up. */
+  float speed = length(v);
+  if (speed > vmax)
+    v *= vmax / speed;
+  float3 x = (float3)(xi, yi, zi) + dt * v;
+  for (int k = 0; k < ncolliders; k++)
+    sph_collide(colliders + k * SPHC_STRIDE, &x, &v);
+  /* The tank comes last, so nothing can leave it: clamp, and stop the motion into a wall. */
+  float3 lo = (float3)(bx0, by0, bz0), hi = (float3)(bx1, by1, bz1);
+  if (x.x <= lo.x && v.x < 0.0f)
+    v.x = 0.0f;
+  if (x.x >= hi.x && v.x > 0.0f)
+    v.x = 0.0f;
+  if (x.y <= lo.y && v.y < 0.0f)
+    v.y = 0.0f;
+  if (x.y >= hi.y && v.y > 0.0f)
+    v.y = 0.0f;
+  if (x.z <= lo.z && v.z < 0.0f)
+    v.z = 0.0f;
+  if (x.z >= hi.z && v.z > 0.0f)
+    v.z = 0.0f;
+  x = clamp(x, lo, hi);
+  out[i] = x.x, out[stride + i] = x.y, out[2 * stride + i] = x.z;
+  out[3 * stride + i] = v.x, out[4 * stride + i] = v.y, out[5 * stride + i] = v.z;
+}
