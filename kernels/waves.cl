@@ -23,8 +23,9 @@
  * Each work-item shades a packet of WAVES_PACKET (16) horizontally adjacent pixels in the lanes
  * of a float16, so that PoCL's code is vector code whatever it does with the work-item loop
  * and fills AVX-512's registers: twice the objects kernel's 8 pixels halved the pass's time,
- * which is bound by the number of instructions more than by any one unit. A packet skips a
- * wave when none of its rays comes within the wave's bounding sphere.
+ * which is bound by the number of instructions more than by any one unit. The host lists, for
+ * each work-group, the waves that may meet one of its rays (cull_waves in render.c); a packet
+ * integrates only those, and skips one whose capsule none of its rays enters.
  */
 #include "common.h"
 
@@ -344,83 +345,28 @@ static inline void wave_store(__global float *restrict linear, __global float *r
 }
 
 /*
- * Whether some ray of the packet may pass through wave 'wv' between 'near_' and 'tmax': the
- * test against the wave's bounding sphere, about the middle of its axis.
- */
-static inline int wave_in_view(__global const float *restrict wv, float near_, wfloat tmax,
-                               wfloat dx, wfloat dy, wfloat dz) {
-  float cx = wv[WAVE_BOUND], cy = wv[WAVE_BOUND + 1], cz = wv[WAVE_BOUND + 2];
-  float rb = wv[WAVE_BOUND + 3];
-  wfloat ux = dy * cz - dz * cy, uy = dz * cx - dx * cz, uz = dx * cy - dy * cx;
-  wfloat tc = -(dx * cx + dy * cy + dz * cz);
-  return any((ux * ux + uy * uy + uz * uz <= rb * rb) & (tc + rb >= near_) & (tc - rb <= tmax));
-}
-
-/*
- * The planes that bound a packet's rays, for wave_in_packet. The rays of a packet lie in one
- * plane through the eye (they differ only along step_x): its unit normal 'n', and the unit
- * normals 'e0' and 'e7' of the planes through the first and the last ray, perpendicular to it,
- * facing the other rays.
- */
-typedef struct wave_wedge {
-  float3 n, e0, e7;
-} wave_wedge_t;
-
-static inline wave_wedge_t wave_packet_wedge(const vfx_frame_t *f, int x0, int y) {
-  float3 sx = (float3)(f->step_x[0], f->step_x[1], f->step_x[2]);
-  float3 a0 = (float3)(f->base[0], f->base[1], f->base[2]) + (x0 + 0.5f) * sx +
-              (y + 0.5f) * (float3)(f->step_y[0], f->step_y[1], f->step_y[2]);
-  float3 a7 = a0 + (WAVES_PACKET - 1) * sx;
-  wave_wedge_t w;
-  w.n = normalize(cross(a0, sx));
-  w.e0 = normalize(cross(w.n, a0));
-  w.e7 = normalize(cross(a7, w.n));
-  w.e0 = dot(w.e0, a7) < 0.0f ? -w.e0 : w.e0;
-  w.e7 = dot(w.e7, a0) < 0.0f ? -w.e7 : w.e7;
-  return w;
-}
-
-/*
- * Whether wave 'wv' may meet a ray of the packet bounded by 'g': the capsule is out of reach
- * when both ends of its segment lie farther than R from the packet's plane on the same side,
- * or farther than R outside one of the side planes. Exact for the plane, conservative at the
- * wedge's edges, and all scalar work: most packets skip most waves here.
- */
-static inline int wave_in_packet(__global const float *restrict wv, const wave_wedge_t *g) {
-  float3 w = (float3)(wv[WAVE_W], wv[WAVE_W + 1], wv[WAVE_W + 2]);
-  float3 d = (float3)(wv[WAVE_D], wv[WAVE_D + 1], wv[WAVE_D + 2]);
-  float len = wv[WAVE_L], r = wv[WAVE_RADIUS];
-  /* Signed distances of M and M + L D, whose offsets from the eye are -w and L D - w. */
-  float pm = -dot(g->n, w), pl = pm + len * dot(g->n, d);
-  float am = -dot(g->e0, w), al = am + len * dot(g->e0, d);
-  float bm = -dot(g->e7, w), bl = bm + len * dot(g->e7, d);
-  return !((pm > r && pl > r) || (pm < -r && pl < -r) || (am < -r && al < -r) ||
-           (bm < -r && bl < -r));
-}
-
-/*
  * One packet of WAVES_PACKET pixels per work-item, at pixel (WAVES_PACKET * global x, global y),
  * over the padded buffers of the objects pass: 'depth' ends every ray (+INFINITY where nothing
- * opaque was hit); 'waves' holds 'nwaves' records of WAVE_STRIDE floats made for this frame's eye.
- * 'mode' is a set of WAVES_* bits; 'hout' receives the summed unclamped H when it asks for it. Each
- * wave adds wave_glow(H) times its colour to the linear RGB: its full colour where H >= c, fading
- * smoothly to nothing as H falls to 0.
+ * opaque was hit); 'waves' holds 'nwaves' records of WAVE_STRIDE floats made for this frame's eye,
+ * and 'lists', for work-group g (numbered row by row), the number of waves to draw at
+ * (nwaves + 1) g and their indices after it. 'mode' is a set of WAVES_* bits; 'hout' receives the
+ * summed unclamped H when it asks for it. Each wave adds wave_glow(H) times its colour to the
+ * linear RGB: its full colour where H >= c, fading smoothly to nothing as H falls to 0.
  */
 __kernel void waves(vfx_frame_t f, __global const float *restrict waves, int nwaves,
-                    __global const float *restrict depth, __global float *restrict linear,
-                    __global float *restrict hout, int mode) {
+                    __global const int *restrict lists, __global const float *restrict depth,
+                    __global float *restrict linear, __global float *restrict hout, int mode) {
   int x0 = WAVES_PACKET * get_global_id(0), y = get_global_id(1);
   int o = y * f.pitch + x0;
   wfloat dx, dy, dz;
   wave_rays(&f, x0, y, &dx, &dy, &dz);
   wfloat tmax = WAVE_LOAD(0, depth + o);
-  wave_wedge_t g = wave_packet_wedge(&f, x0, y);
   wfloat hsum = 0.0f, gr = 0.0f, gg = 0.0f, gb = 0.0f;
   int touched = 0;
-  for (int i = 0; i < nwaves; i++) {
-    __global const float *wv = waves + i * WAVE_STRIDE;
-    if (!wave_in_packet(wv, &g) || !wave_in_view(wv, f.near_, tmax, dx, dy, dz))
-      continue;
+  __global const int *list =
+      lists + (get_group_id(1) * get_num_groups(0) + get_group_id(0)) * (nwaves + 1);
+  for (int j = 0, count = list[0]; j < count; j++) {
+    __global const float *wv = waves + list[1 + j] * WAVE_STRIDE;
     wave_ray_t w = wave_setup(wv, f.near_, tmax, dx, dy, dz);
     if (!any(w.hi > w.lo))
       continue;
@@ -438,20 +384,20 @@ __kernel void waves(vfx_frame_t f, __global const float *restrict waves, int nwa
 /* The waves kernel with the closed form replaced by a ray march of 'samples' samples per wave
  * and ray (wave_march); for comparisons, never used to render a frame. */
 __kernel void waves_march(vfx_frame_t f, __global const float *restrict waves, int nwaves,
-                          __global const float *restrict depth, __global float *restrict linear,
-                          __global float *restrict hout, int mode, int samples) {
+                          __global const int *restrict lists, __global const float *restrict depth,
+                          __global float *restrict linear, __global float *restrict hout, int mode,
+                          int samples) {
   int x0 = WAVES_PACKET * get_global_id(0), y = get_global_id(1);
   int o = y * f.pitch + x0;
   wfloat dx, dy, dz;
   wave_rays(&f, x0, y, &dx, &dy, &dz);
   wfloat tmax = WAVE_LOAD(0, depth + o);
-  wave_wedge_t g = wave_packet_wedge(&f, x0, y);
   wfloat hsum = 0.0f, gr = 0.0f, gg = 0.0f, gb = 0.0f;
   int touched = 0;
-  for (int i = 0; i < nwaves; i++) {
-    __global const float *wv = waves + i * WAVE_STRIDE;
-    if (!wave_in_packet(wv, &g) || !wave_in_view(wv, f.near_, tmax, dx, dy, dz))
-      continue;
+  __global const int *list =
+      lists + (get_group_id(1) * get_num_groups(0) + get_group_id(0)) * (nwaves + 1);
+  for (int j = 0, count = list[0]; j < count; j++) {
+    __global const float *wv = waves + list[1 + j] * WAVE_STRIDE;
     wave_ray_t w = wave_setup(wv, f.near_, tmax, dx, dy, dz);
     if (!any(w.hi > w.lo))
       continue;
