@@ -54,12 +54,22 @@ inline float3 sph_fill(__global const float *wall, float x, float y, float z, fl
   return fmin(f / rest_density, 1.0f);
 }
 
+/* Lane numbers of a float8 run of particles. */
+#define SPH_LANES ((int8)(0, 1, 2, 3, 4, 5, 6, 7))
+
+/* The sum of a float8's lanes, always in the same order. */
+inline float sph_sum8(float8 v) {
+  float4 a = v.lo + v.hi;
+  float2 b = a.lo + a.hi;
+  return b.x + b.y;
+}
+
 __kernel __attribute__((reqd_work_group_size(SPH_LOCAL, 1, 1))) void
 sph_density(__global const float *state, int stride, int n, __global const int *cell_start,
             int nx, int ny, int nz, float ox, float oy, float oz, float inv_cell, float h,
             float mass_kernel, float rest_density, float stiffness, __global const float *wall,
             float inv_h, float bx0, float by0, float bz0, float bx1, float by1, float bz1,
-            __global float *rho_out, __global float *p_out) {
+            __global float *inv_rho_out, __global float *pr2_out) {
   int i = get_global_id(0);
   if (i >= n)
     return;
@@ -68,18 +78,23 @@ sph_density(__global const float *state, int stride, int n, __global const int *
   int cx = sph_cell(xi, ox, inv_cell, nx), cy = sph_cell(yi, oy, inv_cell, ny),
       cz = sph_cell(zi, oz, inv_cell, nz);
   int x0 = max(cx - 1, 0), x1 = min(cx + 1, nx - 1);
-  float sum = 0.0f;
+  /* Each run of three x-adjacent cells is contiguous; it is read eight particles at a time,
+   * lanes past its end masked off (the buffers have room for the overreach). */
+  float8 acc = 0.0f;
   for (int z = max(cz - 1, 0); z <= min(cz + 1, nz - 1); z++) {
     for (int y = max(cy - 1, 0); y <= min(cy + 1, ny - 1); y++) {
       int row = (z * ny + y) * nx;
       int end = cell_start[row + x1 + 1];
-      for (int j = cell_start[row + x0]; j < end; j++) {
-        float dx = xi - px[j], dy = yi - py[j], dz = zi - pz[j];
-        float w = fmax(h - sqrt(dx * dx + dy * dy + dz * dz), 0.0f);
-        sum += w * w * w;
+      for (int j = cell_start[row + x0]; j < end; j += 8) {
+        float8 dx = xi - vload8(0, px + j), dy = yi - vload8(0, py + j),
+               dz = zi - vload8(0, pz + j);
+        float8 w = fmax(h - sqrt(dx * dx + dy * dy + dz * dz), 0.0f);
+        w = select((float8)0.0f, w, (j + SPH_LANES) < end);
+        acc += w * w * w;
       }
     }
   }
+  float sum = sph_sum8(acc);
   /* The tank's walls stand for the fluid that would lie beyond them (the wall weight of
    * Harada et al. 2007), so particles beside a wall are not thinned out. Per axis, f is the
    * fraction of a full neighbourhood that lies beyond that axis' walls; near an edge or a
@@ -87,8 +102,8 @@ sph_density(__global const float *state, int stride, int n, __global const int *
    * the overlap once (exactly so for a separable kernel, closely for poly6). */
   float3 f = sph_fill(wall, xi, yi, zi, inv_h, bx0, by0, bz0, bx1, by1, bz1, rest_density);
   float rho = mass_kernel * sum + rest_density * (1.0f - (1.0f - f.x) * (1.0f - f.y) * (1.0f - f.z));
-  rho_out[i] = rho;
-  p_out[i] = fmax(stiffness * (rho - rest_density), 0.0f);
+  inv_rho_out[i] = 1.0f / rho;
+  pr2_out[i] = fmax(stiffness * (rho - rest_density), 0.0f) / (rho * rho);
 }
 
 /* Pushes (x, v) out of collider record 'c' and removes the velocity into its surface. */
@@ -147,7 +162,7 @@ inline void sph_collide(__global const float *c, float3 *x, float3 *v) {
 __kernel __attribute__((reqd_work_group_size(SPH_LOCAL, 1, 1))) void
 sph_forces(__global const float *state, int stride, int n, __global const int *cell_start,
            int nx, int ny, int nz, float ox, float oy, float oz, float inv_cell, float h,
-           __global const float *rho, __global const float *pres, float mass_spiky,
+           __global const float *inv_rho, __global const float *pr2, float mass_spiky,
            float mass_visc, float gx, float gy, float gz, float dt, float vmax,
            __global const float *colliders, int ncolliders, float bx0, float by0, float bz0,
            float bx1, float by1, float bz1, __global const float *wall, float inv_h,
@@ -160,51 +175,53 @@ sph_forces(__global const float *state, int stride, int n, __global const int *c
                        *vz = state + 5 * stride;
   float xi = px[i], yi = py[i], zi = pz[i];
   float uxi = vx[i], uyi = vy[i], uzi = vz[i];
-  float pi_rho = pres[i];
-  float pi_r2 = pi_rho / (rho[i] * rho[i]);
+  float pi_r2 = pr2[i], inv_rho_i = inv_rho[i];
   int cx = sph_cell(xi, ox, inv_cell, nx), cy = sph_cell(yi, oy, inv_cell, ny),
       cz = sph_cell(zi, oz, inv_cell, nz);
   int x0 = max(cx - 1, 0), x1 = min(cx + 1, nx - 1);
-  /* Pressure and viscosity force sums, without the constant factors. */
-  float fpx = 0.0f, fpy = 0.0f, fpz = 0.0f, fvx = 0.0f, fvy = 0.0f, fvz = 0.0f;
+  /* Pressure and viscosity force sums, without the constant factors, eight lanes wide. */
+  float8 fpx = 0.0f, fpy = 0.0f, fpz = 0.0f, fvx = 0.0f, fvy = 0.0f, fvz = 0.0f;
   for (int z = max(cz - 1, 0); z <= min(cz + 1, nz - 1); z++) {
     for (int y = max(cy - 1, 0); y <= min(cy + 1, ny - 1); y++) {
       int row = (z * ny + y) * nx;
       int end = cell_start[row + x1 + 1];
-      for (int j = cell_start[row + x0]; j < end; j++) {
-        float dx = xi - px[j], dy = yi - py[j], dz = zi - pz[j];
-        float r2 = dx * dx + dy * dy + dz * dz;
-        float r = sqrt(r2);
-        float q = fmax(h - r, 0.0f);
-        float inv_rho = 1.0f / rho[j];
-        /* The spiky gradient along (xi - xj) / r pushes i away from j; r = 0 (i itself, or
-         * a particle exactly on top of it) contributes nothing. */
-        float s = r > 1e-9f ? (pi_r2 + pres[j] * inv_rho * inv_rho) * q * q / r : 0.0f;
+      for (int j = cell_start[row + x0]; j < end; j += 8) {
+        float8 dx = xi - vload8(0, px + j), dy = yi - vload8(0, py + j),
+               dz = zi - vload8(0, pz + j);
+        float8 r2 = dx * dx + dy * dy + dz * dz;
+        /* r = 0 (i itself, or a particle exactly on top of it) pushes nowhere. */
+        float8 inv_r = select((float8)0.0f, rsqrt(r2), r2 > 1e-18f);
+        float8 q = fmax(h - r2 * inv_r, 0.0f);
+        q = select((float8)0.0f, q, (j + SPH_LANES) < end);
+        float8 ir = vload8(0, inv_rho + j);
+        /* The spiky gradient along (xi - xj) / r pushes i away from j. */
+        float8 s = (pi_r2 + vload8(0, pr2 + j)) * q * q * inv_r;
         fpx += s * dx, fpy += s * dy, fpz += s * dz;
-        float t = q * inv_rho;
-        fvx += t * (vx[j] - uxi), fvy += t * (vy[j] - uyi), fvz += t * (vz[j] - uzi);
+        float8 t = q * ir;
+        fvx += t * (vload8(0, vx + j) - uxi), fvy += t * (vload8(0, vy + j) - uyi);
+        fvz += t * (vload8(0, vz + j) - uzi);
       }
     }
   }
-  float inv_rho_i = 1.0f / rho[i];
   /* The walls push back with the pressure of the fluid they stand for, taken equal to this
-   * particle's: Müller's pressure force with p_j = p_i and rho_j = rho_i. An axis' push is
+   * particle's: -p / rho² times the gradient of the density they add. An axis' push is
    * scaled by the fractions not beyond the other axes' walls, as in sph_density. */
   __global const float *grad = wall + SPH_WALL_N + 1;
-  float pw = pi_rho * inv_rho_i * inv_rho_i;
   float3 f = 1.0f - sph_fill(wall, xi, yi, zi, inv_h, bx0, by0, bz0, bx1, by1, bz1, rest_density);
   float3 fw = (float3)(sph_wall(grad, xi - bx0, inv_h) - sph_wall(grad, bx1 - xi, inv_h),
                        sph_wall(grad, yi - by0, inv_h) - sph_wall(grad, by1 - yi, inv_h),
                        sph_wall(grad, zi - bz0, inv_h) - sph_wall(grad, bz1 - zi, inv_h)) *
               (float3)(f.y * f.z, f.x * f.z, f.x * f.y);
-  /* The walls are no-slip: they drag like fluid at rest, Müller's viscosity with v_j = 0. */
+  /* The walls drag like fluid at rest (no slip): Müller's viscosity with v_j = 0. */
   __global const float *lap = wall + 2 * (SPH_WALL_N + 1);
   float drag = sph_wall(lap, xi - bx0, inv_h) + sph_wall(lap, bx1 - xi, inv_h) +
                sph_wall(lap, yi - by0, inv_h) + sph_wall(lap, by1 - yi, inv_h) +
                sph_wall(lap, zi - bz0, inv_h) + sph_wall(lap, bz1 - zi, inv_h);
   float kv = viscosity * drag * inv_rho_i * inv_rho_i;
-  float3 a = (float3)(gx, gy, gz) + pw * fw - kv * (float3)(uxi, uyi, uzi) +
-             mass_spiky * (float3)(fpx, fpy, fpz) + inv_rho_i * mass_visc * (float3)(fvx, fvy, fvz);
+  float3 fp = (float3)(sph_sum8(fpx), sph_sum8(fpy), sph_sum8(fpz));
+  float3 fv = (float3)(sph_sum8(fvx), sph_sum8(fvy), sph_sum8(fvz));
+  float3 a = (float3)(gx, gy, gz) + pi_r2 * fw - kv * (float3)(uxi, uyi, uzi) +
+             mass_spiky * fp + inv_rho_i * mass_visc * fv;
   float3 v = (float3)(uxi, uyi, uzi) + dt * a;
   /* The speed limit (the sound speed) keeps a broken state from blowing up. */
   float speed = length(v);

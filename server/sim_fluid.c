@@ -42,7 +42,7 @@ struct fluid_sim {
   float inv_cell;          /* 1 / cell size. */
   uint32_t ncells;
 
-  cl_mem d_state, d_out, d_rho, d_pres, d_cells, d_colliders, d_wall;
+  cl_mem d_state, d_out, d_inv_rho, d_pr2, d_cells, d_colliders, d_wall;
   float wall[3 * (WALL_N + 1)]; /* The wall tables the device has (wall_tables). */
   float *colliders;             /* ncolliders records of COL_STRIDE floats. */
   int ncolliders;
@@ -214,7 +214,7 @@ static void grid_init(fluid_sim_t *s) {
 void fluid_sim_destroy(fluid_sim_t *s) {
   if (s == NULL)
     return;
-  cl_mem bufs[] = {s->d_state, s->d_out,       s->d_rho, s->d_pres,
+  cl_mem bufs[] = {s->d_state, s->d_out,       s->d_inv_rho, s->d_pr2,
                    s->d_cells, s->d_colliders, s->d_wall};
   for (size_t i = 0; i < sizeof bufs / sizeof bufs[0]; i++) {
     if (bufs[i])
@@ -248,7 +248,8 @@ fluid_sim_t *fluid_sim_create(cl_dev_t *dev, const fluid_params_t *p, char *err,
   s->cap = p->max_particles;
   s->stride = ((size_t)s->cap + LOCAL - 1) / LOCAL * LOCAL;
   grid_init(s);
-  size_t nstate = 6 * s->stride;
+  /* The kernels read eight particles at a time past a run's end: 8 floats of slack. */
+  size_t nstate = 6 * s->stride + 8;
   s->state = calloc(nstate, sizeof(float));
   s->scratch = calloc(nstate, sizeof(float));
   s->ids = calloc(s->cap, sizeof(uint32_t));
@@ -269,9 +270,10 @@ fluid_sim_t *fluid_sim_create(cl_dev_t *dev, const fluid_params_t *p, char *err,
   if (rc == CL_SUCCESS)
     s->d_out = clCreateBuffer(ctx, CL_MEM_WRITE_ONLY, nstate * sizeof(float), NULL, &rc);
   if (rc == CL_SUCCESS)
-    s->d_rho = clCreateBuffer(ctx, CL_MEM_READ_WRITE, s->stride * sizeof(float), NULL, &rc);
+    s->d_inv_rho =
+        clCreateBuffer(ctx, CL_MEM_READ_WRITE, (s->stride + 8) * sizeof(float), NULL, &rc);
   if (rc == CL_SUCCESS)
-    s->d_pres = clCreateBuffer(ctx, CL_MEM_READ_WRITE, s->stride * sizeof(float), NULL, &rc);
+    s->d_pr2 = clCreateBuffer(ctx, CL_MEM_READ_WRITE, (s->stride + 8) * sizeof(float), NULL, &rc);
   if (rc == CL_SUCCESS)
     s->d_cells =
         clCreateBuffer(ctx, CL_MEM_READ_ONLY, ((size_t)s->ncells + 1) * sizeof(int32_t), NULL, &rc);
@@ -566,8 +568,8 @@ static int substep(fluid_sim_t *s, float dt, char *err, size_t errlen) {
     rc |= clSetKernelArg(kd, a++, sizeof(float), &p->bounds_min[i]);
   for (int i = 0; i < 3; i++)
     rc |= clSetKernelArg(kd, a++, sizeof(float), &p->bounds_max[i]);
-  rc |= clSetKernelArg(kd, a++, sizeof(cl_mem), &s->d_rho);
-  rc |= clSetKernelArg(kd, a++, sizeof(cl_mem), &s->d_pres);
+  rc |= clSetKernelArg(kd, a++, sizeof(cl_mem), &s->d_inv_rho);
+  rc |= clSetKernelArg(kd, a++, sizeof(cl_mem), &s->d_pr2);
 
   cl_kernel kf = s->k_forces;
   a = 0;
@@ -583,8 +585,8 @@ static int substep(fluid_sim_t *s, float dt, char *err, size_t errlen) {
   rc |= clSetKernelArg(kf, a++, sizeof oz, &oz);
   rc |= clSetKernelArg(kf, a++, sizeof(float), &s->inv_cell);
   rc |= clSetKernelArg(kf, a++, sizeof hf, &hf);
-  rc |= clSetKernelArg(kf, a++, sizeof(cl_mem), &s->d_rho);
-  rc |= clSetKernelArg(kf, a++, sizeof(cl_mem), &s->d_pres);
+  rc |= clSetKernelArg(kf, a++, sizeof(cl_mem), &s->d_inv_rho);
+  rc |= clSetKernelArg(kf, a++, sizeof(cl_mem), &s->d_pr2);
   rc |= clSetKernelArg(kf, a++, sizeof mass_spiky, &mass_spiky);
   rc |= clSetKernelArg(kf, a++, sizeof mass_visc, &mass_visc);
   for (int i = 0; i < 3; i++)
