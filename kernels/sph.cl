@@ -1,10 +1,17 @@
 /*
- * SPH after Müller et al. 2003 for server/sim_fluid.c: sph_density (poly6 density, then the
- * pressure of p = k (rho - rho0), never negative) and sph_forces (spiky pressure gradient,
- * viscosity Laplacian, gravity, then a symplectic Euler step and the colliders). The host
- * sorts the particles by grid cell before every substep, so a particle's neighbours are nine
- * contiguous runs of the arrays (three x-adjacent cells are adjacent in memory) and every sum
- * runs in the same order on every run: the results are deterministic.
+ * SPH after Müller et al. 2003 for server/sim_fluid.c. sph_density sums the density with
+ * the spiky kernel W = 15 / (pi h^6) (h - r)^3 and turns it into p / rho^2 with
+ * p = k (rho - rho0), never negative. sph_forces applies the pressure force with the
+ * gradient of that same kernel in the symmetric form m (p_i / rho_i^2 + p_j / rho_j^2),
+ * Müller's viscosity Laplacian and gravity, then takes a symplectic Euler step and applies
+ * the colliders. Müller's paper uses poly6 for the density and spiky for the pressure; with
+ * one kernel for both the pressure force is the exact gradient of the compression energy,
+ * and a closed tank keeps its energy instead of slowly gaining it (docs/fluid-validation.md).
+ *
+ * The host sorts the particles by grid cell before every substep, so a particle's neighbours
+ * are nine contiguous runs of the arrays (three x-adjacent cells are adjacent in memory),
+ * read eight at a time, and every sum runs in the same order on every run: the results are
+ * deterministic.
  *
  * State layout: one float buffer of 6 * stride floats, px | py | pz | vx | vy | vz.
  * 'cell_start' has nx * ny * nz + 1 entries: cell c holds particles cell_start[c] up to
@@ -99,7 +106,7 @@ sph_density(__global const float *state, int stride, int n, __global const int *
    * Harada et al. 2007), so particles beside a wall are not thinned out. Per axis, f is the
    * fraction of a full neighbourhood that lies beyond that axis' walls; near an edge or a
    * corner the regions beyond two walls overlap, and 1 - (1 - fx)(1 - fy)(1 - fz) counts
-   * the overlap once (exactly so for a separable kernel, closely for poly6). */
+   * the overlap once (exactly so for a separable kernel, closely for ours). */
   float3 f = sph_fill(wall, xi, yi, zi, inv_h, bx0, by0, bz0, bx1, by1, bz1, rest_density);
   float rho = mass_kernel * sum + rest_density * (1.0f - (1.0f - f.x) * (1.0f - f.y) * (1.0f - f.z));
   inv_rho_out[i] = 1.0f / rho;

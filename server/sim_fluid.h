@@ -1,6 +1,6 @@
 /*
  * The particle fluid of SPEC §5.2, simulated: weakly compressible SPH after Müller et al. 2003
- * (poly6 density, spiky pressure gradient, viscosity Laplacian, gravity) on the OpenCL device
+ * (spiky-kernel density and pressure gradient, viscosity Laplacian, gravity) on the OpenCL device
  * of the renderer, with a uniform neighbour grid sorted on the host, the tank's bounds and the
  * scene's opaque objects as colliders, and emitters. docs/fluid-validation.md explains the
  * choices and the dam-break validation.
@@ -59,7 +59,7 @@ void fluid_params_default(fluid_params_t *p);
 
 /*
  * The particle mass for which a particle inside a cubic lattice of 'spacing' has exactly
- * the density 'rest_density' with support radius 'h' (the poly6 sum over the lattice).
+ * the density 'rest_density' with support radius 'h' (the spiky sum over the lattice).
  */
 float fluid_lattice_mass(float h, float spacing, float rest_density);
 

@@ -200,11 +200,11 @@ static void test_rest(void) {
   fluid_sim_destroy(s);
 }
 
-/* Fluid poured onto a sphere and a rotated box: no particle ends up inside either. */
+/* Fluid poured onto a sphere, a rotated box and a tilted plane: none ends up inside one. */
 static void test_colliders(void) {
   fluid_params_t p;
   fluid_params_default(&p);
-  robject_t objs[2];
+  robject_t objs[4];
   memset(objs, 0, sizeof objs);
   objs[0].shape = SHAPE_SPHERE;
   objs[0].position[1] = -2.5f;
@@ -213,6 +213,12 @@ static void test_colliders(void) {
   memcpy(objs[1].position, (float[3]){3, -4, 0}, sizeof objs[1].position);
   memcpy(objs[1].scale, (float[3]){2, 1, 3}, sizeof objs[1].scale);
   memcpy(objs[1].rotation, (float[3]){10, 30, 20}, sizeof objs[1].rotation);
+  /* A floor tilted 15 degrees about z, and a tetrahedron, which does not collide. */
+  objs[2].shape = SHAPE_PLANE;
+  objs[2].position[1] = -4;
+  objs[2].rotation[2] = 15;
+  objs[3].shape = SHAPE_TETRAHEDRON;
+  objs[3].scale[0] = objs[3].scale[1] = objs[3].scale[2] = 1;
   static float pos[3 * 4096], vel[3 * 4096];
   float o[3] = {-2.0f, 1.0f, -2.0f};
   uint32_t n = block(pos, 16, 16, 16, p.h / 2, o);
@@ -220,9 +226,10 @@ static void test_colliders(void) {
   CHECK(s != NULL, "%s", err);
   if (s == NULL)
     return;
-  CHECK(fluid_sim_set_colliders(s, objs, 2, err, sizeof err) == 0, "%s", err);
+  CHECK(fluid_sim_set_colliders(s, objs, 4, err, sizeof err) == 0, "%s", err);
   fluid_sim_set_particles(s, pos, NULL, n, err, sizeof err);
-  uint32_t inside_sphere = 0, inside_box = 0;
+  uint32_t inside_sphere = 0, inside_box = 0, below_plane = 0;
+  double tilt = 15 * M_PI / 180;
   double rot[3] = {10 * M_PI / 180, 30 * M_PI / 180, 20 * M_PI / 180};
   for (int step = 0; step < 90; step++) {
     fluid_sim_step(s, 1.0 / 60, err, sizeof err);
@@ -240,10 +247,12 @@ static void test_colliders(void) {
       c = cos(-rot[0]), sn = sin(-rot[0]), t0 = c * q[1] - sn * q[2];
       q[2] = sn * q[1] + c * q[2], q[1] = t0;
       inside_box += fabs(q[0]) < 1 - 1e-4 && fabs(q[1]) < 0.5 - 1e-4 && fabs(q[2]) < 1.5 - 1e-4;
+      below_plane += -sin(tilt) * pos[3 * k] + cos(tilt) * (pos[3 * k + 1] + 4.0) < -1e-4;
     }
   }
   CHECK(inside_sphere == 0, "%u particle-steps inside the sphere", inside_sphere);
   CHECK(inside_box == 0, "%u particle-steps inside the box", inside_box);
+  CHECK(below_plane == 0, "%u particle-steps below the plane", below_plane);
   fluid_sim_destroy(s);
 }
 
