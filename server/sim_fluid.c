@@ -39,7 +39,8 @@ struct fluid_sim {
   int32_t *cell_start;     /* ncells + 1 entries. */
   float wall_key[3];       /* h, mass and rest density of the wall tables on the device. */
   int nx, ny, nz;          /* The grid. */
-  float inv_cell;          /* 1 / cell size. */
+  float inv_cell;          /* 1 / cell size in y and z. */
+  float inv_cell_x;        /* 1 / cell size in x: half the cell, so runs fit h more tightly. */
   uint32_t ncells;
 
   cl_mem d_state, d_out, d_inv_rho, d_pr2, d_cells, d_colliders, d_wall;
@@ -190,22 +191,24 @@ static void wall_tables(double h, double mass, double rest_density, float *out) 
   }
 }
 
-/* Sizes the grid over the bounds: cells of the support radius, or larger if there would be
- * more than MAX_CELLS of them (the neighbour search stays exact, only slower). */
+/* Sizes the grid over the bounds: cells of the support radius in y and z and half of it in x,
+ * or larger if there would be more than MAX_CELLS of them (the neighbour search stays exact,
+ * only slower). */
 static void grid_init(fluid_sim_t *s) {
   double ext[3], cell = s->p.h;
   for (int i = 0; i < 3; i++)
     ext[i] = (double)s->p.bounds_max[i] - s->p.bounds_min[i];
   for (;;) {
-    double n = 1;
-    for (int i = 0; i < 3; i++)
+    double n = fmax(1, ceil(2 * ext[0] / cell));
+    for (int i = 1; i < 3; i++)
       n *= fmax(1, ceil(ext[i] / cell));
     if (n <= MAX_CELLS)
       break;
     cell *= 1.25;
   }
   s->inv_cell = (float)(1.0 / cell);
-  s->nx = (int)fmax(1, ceil(ext[0] / cell));
+  s->inv_cell_x = (float)(2.0 / cell);
+  s->nx = (int)fmax(1, ceil(2 * ext[0] / cell));
   s->ny = (int)fmax(1, ceil(ext[1] / cell));
   s->nz = (int)fmax(1, ceil(ext[2] / cell));
   s->ncells = (uint32_t)s->nx * (uint32_t)s->ny * (uint32_t)s->nz;
@@ -282,6 +285,15 @@ fluid_sim_t *fluid_sim_create(cl_dev_t *dev, const fluid_params_t *p, char *err,
                                     MAX_COLLIDERS * COL_STRIDE * sizeof(float), NULL, &rc);
   if (rc == CL_SUCCESS)
     s->d_wall = clCreateBuffer(ctx, CL_MEM_READ_ONLY, sizeof s->wall, NULL, &rc);
+  /* The kernels' masked lanes read past the live particles; zeros there keep them finite. */
+  float zero = 0;
+  size_t per = (s->stride + 8) * sizeof(float);
+  if (rc == CL_SUCCESS)
+    rc = clEnqueueFillBuffer(dev->queue, s->d_inv_rho, &zero, sizeof zero, 0, per, 0, NULL, NULL);
+  if (rc == CL_SUCCESS)
+    rc = clEnqueueFillBuffer(dev->queue, s->d_pr2, &zero, sizeof zero, 0, per, 0, NULL, NULL);
+  if (rc == CL_SUCCESS)
+    rc = clFinish(dev->queue);
   if (rc != CL_SUCCESS) {
     set_err(err, errlen, "[fluid] device buffers for %u particles: %s", s->cap,
             cl_dev_strerror(rc));
@@ -484,7 +496,7 @@ static void sort_by_cell(fluid_sim_t *s) {
   size_t st = s->stride;
   memset(s->cell_start, 0, ((size_t)s->ncells + 1) * sizeof(int32_t));
   for (uint32_t k = 0; k < s->n; k++) {
-    int x = cell_coord(s->state[k], s->p.bounds_min[0], s->inv_cell, s->nx);
+    int x = cell_coord(s->state[k], s->p.bounds_min[0], s->inv_cell_x, s->nx);
     int y = cell_coord(s->state[st + k], s->p.bounds_min[1], s->inv_cell, s->ny);
     int z = cell_coord(s->state[2 * st + k], s->p.bounds_min[2], s->inv_cell, s->nz);
     int32_t key = (z * s->ny + y) * s->nx + x;
@@ -558,6 +570,7 @@ static int substep(fluid_sim_t *s, float dt, char *err, size_t errlen) {
   rc |= clSetKernelArg(kd, a++, sizeof oy, &oy);
   rc |= clSetKernelArg(kd, a++, sizeof oz, &oz);
   rc |= clSetKernelArg(kd, a++, sizeof(float), &s->inv_cell);
+  rc |= clSetKernelArg(kd, a++, sizeof(float), &s->inv_cell_x);
   rc |= clSetKernelArg(kd, a++, sizeof hf, &hf);
   rc |= clSetKernelArg(kd, a++, sizeof mass_kernel, &mass_kernel);
   rc |= clSetKernelArg(kd, a++, sizeof(float), &p->rest_density);
@@ -584,6 +597,7 @@ static int substep(fluid_sim_t *s, float dt, char *err, size_t errlen) {
   rc |= clSetKernelArg(kf, a++, sizeof oy, &oy);
   rc |= clSetKernelArg(kf, a++, sizeof oz, &oz);
   rc |= clSetKernelArg(kf, a++, sizeof(float), &s->inv_cell);
+  rc |= clSetKernelArg(kf, a++, sizeof(float), &s->inv_cell_x);
   rc |= clSetKernelArg(kf, a++, sizeof hf, &hf);
   rc |= clSetKernelArg(kf, a++, sizeof(cl_mem), &s->d_inv_rho);
   rc |= clSetKernelArg(kf, a++, sizeof(cl_mem), &s->d_pr2);
