@@ -327,34 +327,28 @@ int fluid_sim_set_params(fluid_sim_t *s, const fluid_params_t *p, char *err, siz
     return set_err(err, errlen, "fluid.max_particles cannot change on a live simulation"), -1;
   if (!inside_bounds(p, s->state, s->stride, s->n))
     return set_err(err, errlen, "fluid.bounds: particles would lie outside the new bounds"), -1;
-  for (int i = 0; i < 3; i++) {
-    if (p->bounds_min[i] != s->p.bounds_min[i] || p->bounds_max[i] != s->p.bounds_max[i] ||
-        (i == 0 && p->h != s->p.h)) {
-      /* A new grid: its cell table may need a larger device buffer. */
-      fluid_sim_t tmp = *s;
-      tmp.p = *p;
-      grid_init(&tmp);
-      if (tmp.ncells > s->ncells) {
-        cl_int rc;
-        cl_mem cells = clCreateBuffer(s->dev->context, CL_MEM_READ_ONLY,
-                                      ((size_t)tmp.ncells + 1) * sizeof(int32_t), NULL, &rc);
-        int32_t *table = calloc((size_t)tmp.ncells + 1, sizeof(int32_t));
-        if (cells == NULL || table == NULL) {
-          if (cells)
-            clReleaseMemObject(cells);
-          free(table);
-          return set_err(err, errlen, "[fluid] out of memory for the grid"), -1;
-        }
-        clReleaseMemObject(s->d_cells);
-        free(s->cell_start);
-        s->d_cells = cells, s->cell_start = table;
-      }
-      s->p = *p;
-      grid_init(s);
-      break;
+  fluid_sim_t grid = *s;
+  grid.p = *p;
+  grid_init(&grid);
+  if (grid.ncells > s->ncells) {
+    /* A larger grid needs a larger table of cell starts, here and on the device. */
+    cl_int rc;
+    cl_mem cells = clCreateBuffer(s->dev->context, CL_MEM_READ_ONLY,
+                                  ((size_t)grid.ncells + 1) * sizeof(int32_t), NULL, &rc);
+    int32_t *table = calloc((size_t)grid.ncells + 1, sizeof(int32_t));
+    if (cells == NULL || table == NULL) {
+      if (cells)
+        clReleaseMemObject(cells);
+      free(table);
+      return set_err(err, errlen, "[fluid] out of memory for a grid of %u cells", grid.ncells), -1;
     }
+    clReleaseMemObject(s->d_cells);
+    free(s->cell_start);
+    s->d_cells = cells, s->cell_start = table;
   }
   s->p = *p;
+  s->nx = grid.nx, s->ny = grid.ny, s->nz = grid.nz, s->ncells = grid.ncells;
+  s->inv_cell = grid.inv_cell, s->inv_cell_x = grid.inv_cell_x;
   return 0;
 }
 
@@ -420,6 +414,8 @@ static void rotation(const float deg[3], double r[3][3]) {
 
 int fluid_sim_set_colliders(fluid_sim_t *s, const robject_t *objs, int n, char *err,
                             size_t errlen) {
+  if (n < 0 || (n > 0 && objs == NULL))
+    return set_err(err, errlen, "fluid: no objects array for %d colliders", n), -1;
   float recs[MAX_COLLIDERS * COL_STRIDE];
   int count = 0;
   for (int k = 0; k < n && count < MAX_COLLIDERS; k++) {

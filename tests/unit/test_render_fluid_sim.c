@@ -288,7 +288,22 @@ static void test_refusals(void) {
         "a refusal changed the particles");
   CHECK(fluid_sim_step(s, 0, err, sizeof err) == -1 && fluid_sim_step(s, NAN, err, sizeof err),
         "dt 0 or NaN accepted");
+  /* Parameters: a change that would strand particles or resize the arrays is refused;
+   * larger bounds and a new stiffness are taken, and the fluid steps on. */
   fluid_params_t q = p;
+  q.bounds_max[0] = 1;
+  CHECK(fluid_sim_set_params(s, &q, err, sizeof err) == -1, "bounds cutting particles accepted");
+  q = p, q.max_particles = 200;
+  CHECK(fluid_sim_set_params(s, &q, err, sizeof err) == -1, "new max_particles accepted");
+  q = p, q.wall_friction = 2;
+  CHECK(fluid_sim_set_params(s, &q, err, sizeof err) == -1, "wall_friction 2 accepted");
+  q = p, q.bounds_min[0] = -20, q.bounds_max[1] = 20, q.stiffness = 2000;
+  CHECK(fluid_sim_set_params(s, &q, err, sizeof err) == 0, "%s", err);
+  CHECK(fluid_sim_step(s, 1.0 / 60, err, sizeof err) == 0, "%s", err);
+  fluid_sim_get_particles(s, after, vel);
+  CHECK(fluid_sim_count(s) == 100 && bad_particles(&q, after, vel, 100) == 0,
+        "stepping after new parameters lost particles");
+  q = p;
   q.h = -1;
   CHECK(fluid_sim_create(&dev, &q, err, sizeof err) == NULL, "h < 0 accepted");
   q = p, q.bounds_max[0] = q.bounds_min[0];
