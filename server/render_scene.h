@@ -58,6 +58,22 @@ typedef struct rwave {
   float color[3];     /* Linear RGB at H = clamp. */
 } rwave_t;
 
+/*
+ * Particles of a fluid drawn as metaballs (SPEC §5.2): the field of particle j at distance r
+ * is P(r) = (1 - r/h)² for r <= h, else 0; the surface is where sqrt(ΣP) = threshold.
+ */
+typedef struct rfluid {
+  uint32_t count;
+  const float *positions; /* count × xyz, world units; shared, immutable (see 'owner'). */
+  void *owner;            /* Opaque reference keeping 'positions' alive, released by the
+                             scene's owner; NULL when the scene owns nothing here. */
+  float h;                /* Metaball radius, world units (0.61 in the paper). */
+  float threshold;        /* T (0.765625 in the paper). */
+  float color[3];         /* Transmission tint, linear RGB. */
+  float ior;              /* Index of refraction for the Fresnel term (1.33). */
+  float roughness;        /* Specular spread, 0..1. */
+} rfluid_t;
+
 typedef struct render_scene {
   atomic_int refs;
   rcamera_t camera;
@@ -73,6 +89,7 @@ typedef struct render_scene {
   int nobjects;
   rwave_t *waves; /* Owned by the snapshot (freed with it). */
   int nwaves;
+  rfluid_t fluid; /* count 0: no fluid. */
   float exposure; /* Stops: pixel = tone_map(linear * 2^exposure). */
   tone_map_t tone_map;
   int transparent_background; /* Background pixels get alpha 0 instead of 1. */
