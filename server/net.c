@@ -227,6 +227,15 @@ static void finish_with_error(conn_t *c, int code, const char *msg, const char *
 
 static void on_read(uv_stream_t *stream, ssize_t nread, const uv_buf_t *buf) {
   conn_t *c = stream->data;
+  if (nread == UV_EOF && !c->closing) {
+    /* The client will send nothing more but may still be reading (a half-close, as from
+     * `nc -N`): answer what it sent, then close. */
+    uv_read_stop(stream);
+    c->draining = 1;
+    if (!c->head && c->out_bytes == 0)
+      conn_close(c);
+    return;
+  }
   if (nread < 0) {
     conn_close(c);
     return;

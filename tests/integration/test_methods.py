@@ -963,5 +963,21 @@ def subscription_ends_with_its_scene(s):
     c.close()
 
 
+@T
+def half_close_still_answered(s):
+    # A client that sends its requests and shuts down its side (as `nc -N` does) still gets
+    # every answer, the render's attachment included, and then the server closes.
+    c = s.srv.connect(timeout=30)
+    c.send(c.request("server.info", {}, id=1))
+    c.send(c.request("render", {"width": 64, "height": 32, "format": "rgba8"}, id=2))
+    c.sock.shutdown(mock.socket.SHUT_WR)
+    r1, _ = c.recv_response(timeout=30)
+    r2, att = c.recv_response(timeout=30)
+    s.eq((r1.get("id"), r2.get("id")), (1, 2), "both answered after the half-close")
+    s.eq(len(att or b""), 64 * 32 * 4, "the render's attachment arrives whole")
+    s.check(c.expect_eof(10), "the server closes once everything is written")
+    c.close()
+
+
 if __name__ == "__main__":
     sys.exit(suite.main())
