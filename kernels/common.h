@@ -120,6 +120,36 @@ typedef struct vfx_frame {
 #define WAVES_ADD 1     /* Add the clamped glow to the linear image. */
 #define WAVES_STORE_H 2 /* Write the summed unclamped H to the f32 buffer. */
 
+/*
+ * The fluid pass's constants (SPEC §5.2), passed by value. The host sorts the particles into a
+ * uniform grid of cubic cells of side 'cell' >= h from 'origin', dims[0] x dims[1] x dims[2]
+ * cells, x fastest. Cell c lists every particle within h of its box (a particle is listed in
+ * each cell it can reach), so the field anywhere in a cell needs only that cell's list. Lists
+ * are structure-of-arrays: x at pos[i], y at pos[stride + i], z at pos[2 * stride + i]; a list
+ * starts at a multiple of 8 and is padded to one with FLUID_PAD, whose field is zero. cells[2c]
+ * is the start of cell c's list and cells[2c + 1] the number of real particles in it.
+ */
+typedef struct vfx_fluid {
+  float origin[3];
+  float cell, inv_cell;
+  int dims[3];
+  int stride;  /* Floats per coordinate section of the position buffer. */
+  float inv_h; /* 1 / h. */
+  float h;
+  float threshold;  /* T. */
+  float min_step;   /* The marching step's floor along the ray (world units). */
+  float tol;        /* The crossing's refinement tolerance (world units). */
+  float color[3];   /* Transmission tint. */
+  float f0;         /* Fresnel reflectance at normal incidence, ((ior - 1) / (ior + 1))^2. */
+  float shininess;  /* Blinn-Phong exponent from the roughness. */
+  float box_min[3]; /* The grid's bounds. */
+  float box_max[3];
+} vfx_fluid_t;
+
+#define FLUID_PAD 1e18f /* Coordinate of padding entries: far from everything, finite squared. */
+#define FLUID_LX 8      /* Work-group of the fluid pass: one pixel per work-item. */
+#define FLUID_LY 8
+
 #ifdef __OPENCL_VERSION__
 
 /* Moves a shadow ray's origin off its surface by this much per unit of distance from the eye,

@@ -1,8 +1,10 @@
 /*
  * The renderer: it compiles a render_scene_t into the flat world-space records of
  * kernels/common.h, keeps a BVH of the scene's mesh triangles, and runs the passes of a frame
- * on the OpenCL device: "objects" (ray casting and shading), "waves" (the energy waves'
- * closed-form glow, added to the linear image, or their H as the wave_h AOV), "tonemap",
+ * on the OpenCL device: "objects" (ray casting and shading), "fluid" (the particles as metaballs
+ * over a uniform grid built here each frame, depth-tested against the objects), "waves" (the
+ * energy waves' closed-form glow, added to the linear image, or their H as the wave_h AOV),
+ * "tonemap",
  * "readback" and "encode" (PNG, on the host). Device buffers live across frames and only grow.
  *
  * One thread uses a renderer at a time (the render worker); it starts no threads of its own.
@@ -35,6 +37,7 @@
 #define MAX_SIDE 16384 /* Largest width or height the renderer accepts, whatever the limits. */
 #define BVH_LEAF 4     /* Triangles per leaf the builder aims for. */
 #define BVH_BINS 16    /* Bins of the SAH split search. */
+#define FLUID_MAX_CELLS (1 << 21) /* The fluid grid's cells grow beyond h to stay under this. */
 
 /* -cl-fast-relaxed-math is out: it lets the compiler assume no infinities, and misses are
  * +INFINITY. */
@@ -48,8 +51,8 @@ typedef struct mesh_key {
 
 struct renderer {
   cl_dev_t dev;
-  cl_kernel objects, tonemap, waves, waves_march;
-  size_t objects_local[2], tonemap_local[2], waves_local[2];
+  cl_kernel objects, tonemap, waves, waves_march, fluid;
+  size_t objects_local[2], tonemap_local[2], waves_local[2], fluid_local[2];
   vfx_frame_t frame; /* The current frame's constants, as the objects pass set them up. */
 
   cl_mem linear, depth, rgba8; /* Per-pixel buffers, for cap_pixels pixels. */
@@ -65,6 +68,8 @@ struct renderer {
   size_t cap_lists;
   cl_mem hbuf; /* The wave_h AOV, cap_h pixels (allocated at the first wave_h frame). */
   size_t cap_h;
+  cl_mem fluid_cells, fluid_pos; /* The fluid grid: cap_fcells ints and cap_fpos floats. */
+  size_t cap_fcells, cap_fpos;
 
   /* The BVH on the device holds these mesh objects. Comparing them each frame, rather than the
    * scene pointer, keeps the BVH across snapshots that changed other things (the camera, a
@@ -79,6 +84,10 @@ struct renderer {
   size_t host_waves_cap;
   int32_t *host_lists; /* Staging for the wave lists. */
   size_t host_lists_cap;
+  int32_t *host_fcells; /* Staging for the fluid grid's (start, count) pairs. */
+  size_t host_fcells_cap;
+  float *host_fpos; /* Staging for the fluid grid's padded lists. */
+  size_t host_fpos_cap;
   unsigned char *scratch; /* Tone-mapped bytes waiting for the PNG encoder. */
   size_t scratch_cap;
 };
@@ -970,6 +979,205 @@ static int pass_waves(renderer_t *r, const render_scene_t *scene, int mode, int 
   return 0;
 }
 
+/* ---- Fluid --------------------------------------------------------------------------------- */
+
+/* Grows the int32 or float staging array '*p' to 'need' elements. Returns 0, or -1. */
+static int grow_staging(void **p, size_t *cap, size_t need, size_t size) {
+  if (need <= *cap)
+    return 0;
+  void *q = realloc(*p, need * size);
+  if (q == NULL)
+    return -1;
+  *p = q, *cap = need;
+  return 0;
+}
+
+/* The range of cells [lo, hi] on each axis that the ball of radius 'h' about 'p' may reach. */
+static void fluid_reach(const vfx_fluid_t *fl, const float *p, float h, int lo[3], int hi[3]) {
+  for (int a = 0; a < 3; a++) {
+    double l = floor((p[a] - h - fl->origin[a]) / fl->cell);
+    double u = floor((p[a] + h - fl->origin[a]) / fl->cell);
+    lo[a] = l < 0 ? 0 : l >= fl->dims[a] ? fl->dims[a] - 1 : (int)l;
+    hi[a] = u < 0 ? 0 : u >= fl->dims[a] ? fl->dims[a] - 1 : (int)u;
+  }
+}
+
+/* Whether the ball of radius 'h' about 'p' touches cell (i, j, k), boundary included, with a
+ * margin for the kernel's float rounding (listing one particle too many costs nothing). */
+static int fluid_touches(const vfx_fluid_t *fl, const float *p, double h2, int i, int j, int k) {
+  int c[3] = {i, j, k};
+  double d2 = 0;
+  for (int a = 0; a < 3; a++) {
+    double lo = fl->origin[a] + (double)c[a] * fl->cell, hi = lo + fl->cell;
+    double e = p[a] < lo ? lo - p[a] : p[a] > hi ? p[a] - hi : 0;
+    d2 += e * e;
+  }
+  return d2 <= h2;
+}
+
+/*
+ * Builds the fluid grid of vfx_fluid_t (common.h) in r->host_fcells and r->host_fpos by a
+ * counting sort, and fills 'fl'. Particles with a non-finite coordinate are left out. Returns
+ * the number of cells (0 when no particle is left), or -1 when out of memory.
+ */
+static long fluid_build(renderer_t *r, const rfluid_t *fd, vfx_fluid_t *fl) {
+  float h = fd->h, lo[3] = {INFINITY, INFINITY, INFINITY},
+        hi[3] = {-INFINITY, -INFINITY, -INFINITY};
+  uint32_t used = 0;
+  for (uint32_t i = 0; i < fd->count; i++) {
+    const float *p = fd->positions + 3 * (size_t)i;
+    if (!isfinite(p[0]) || !isfinite(p[1]) || !isfinite(p[2]))
+      continue;
+    used++;
+    for (int a = 0; a < 3; a++) {
+      lo[a] = p[a] < lo[a] ? p[a] : lo[a];
+      hi[a] = p[a] > hi[a] ? p[a] : hi[a];
+    }
+  }
+  if (used == 0)
+    return 0;
+  /* Cells of side h, or larger when the particles spread too far for that many cells: a cell
+   * lists every particle within h of it whatever its size, so any side >= h is correct. */
+  double ext[3], cell = h;
+  for (int a = 0; a < 3; a++)
+    ext[a] = (double)hi[a] - lo[a] + 2.0 * h;
+  while ((ceil(ext[0] / cell) + 1) * (ceil(ext[1] / cell) + 1) * (ceil(ext[2] / cell) + 1) >
+         FLUID_MAX_CELLS)
+    cell *= 1.25;
+  size_t ncell = 1;
+  for (int a = 0; a < 3; a++) {
+    fl->origin[a] = (float)((double)lo[a] - h);
+    fl->dims[a] = (int)ceil(ext[a] / cell) + 1;
+    fl->box_min[a] = fl->origin[a];
+    fl->box_max[a] = (float)(fl->origin[a] + fl->dims[a] * cell);
+    ncell *= (size_t)fl->dims[a];
+  }
+  fl->cell = (float)cell;
+  fl->inv_cell = (float)(1.0 / cell);
+
+  if (grow_staging((void **)&r->host_fcells, &r->host_fcells_cap, 2 * ncell, sizeof(int32_t)))
+    return -1;
+  int32_t *cells = r->host_fcells;
+  memset(cells, 0, 2 * ncell * sizeof(int32_t));
+  double h2 = (double)h * h * 1.0002 + 1e-12;
+  int a[3], b[3];
+  for (int pass = 0; pass < 2; pass++) {
+    if (pass == 1) {
+      /* Starts of the lists, each padded to a multiple of 8; counts restart for the fill. */
+      size_t at = 0;
+      for (size_t c = 0; c < ncell; c++) {
+        int32_t m = cells[2 * c + 1];
+        cells[2 * c] = (int32_t)at;
+        cells[2 * c + 1] = 0;
+        at += (size_t)(m + 7) & ~(size_t)7;
+      }
+      size_t stride = at ? at : 8;
+      if (stride > INT32_MAX / 3 ||
+          grow_staging((void **)&r->host_fpos, &r->host_fpos_cap, 3 * stride, sizeof(float)))
+        return -1;
+      for (size_t i = 0; i < 3 * stride; i++)
+        r->host_fpos[i] = FLUID_PAD;
+      fl->stride = (int)stride;
+    }
+    for (uint32_t i = 0; i < fd->count; i++) {
+      const float *p = fd->positions + 3 * (size_t)i;
+      if (!isfinite(p[0]) || !isfinite(p[1]) || !isfinite(p[2]))
+        continue;
+      fluid_reach(fl, p, h, a, b);
+      for (int k = a[2]; k <= b[2]; k++) {
+        for (int j = a[1]; j <= b[1]; j++) {
+          for (int q = a[0]; q <= b[0]; q++) {
+            if (!fluid_touches(fl, p, h2, q, j, k))
+              continue;
+            size_t c = ((size_t)k * fl->dims[1] + j) * fl->dims[0] + q;
+            if (pass == 1) {
+              size_t at = (size_t)cells[2 * c] + (size_t)cells[2 * c + 1];
+              r->host_fpos[at] = p[0];
+              r->host_fpos[fl->stride + at] = p[1];
+              r->host_fpos[2 * (size_t)fl->stride + at] = p[2];
+            }
+            cells[2 * c + 1]++;
+          }
+        }
+      }
+    }
+  }
+  return (long)ncell;
+}
+
+/*
+ * Runs the fluid pass over the frame the objects pass set up: builds the grid of the scene's
+ * particles, uploads it and draws the metaballs into r->linear and r->depth where they are
+ * nearer than the objects. Sets '*ran' to whether there was a particle to draw. Returns 0 or a
+ * PROTO_E_* code.
+ */
+static int pass_fluid(renderer_t *r, const render_scene_t *scene, int *ran, char *err,
+                      size_t errlen) {
+  const rfluid_t *fd = &scene->fluid;
+  *ran = 0;
+  if (fd->count == 0 || fd->positions == NULL || !(fd->h > 0) || !isfinite(fd->h) ||
+      !(fd->threshold > 0) || !isfinite(fd->threshold))
+    return 0;
+  vfx_fluid_t fl;
+  memset(&fl, 0, sizeof fl);
+  long ncell = fluid_build(r, fd, &fl);
+  if (ncell < 0) {
+    set_err(err, errlen, "[render] out of memory for the grid of %u particles", fd->count);
+    return PROTO_E_INTERNAL;
+  }
+  if (ncell == 0)
+    return 0;
+  fl.h = fd->h;
+  fl.inv_h = 1.0f / fd->h;
+  fl.threshold = fd->threshold;
+  fl.min_step = fd->h / 2000;
+  fl.tol = fd->h * 1e-4f;
+  double ior = isfinite(fd->ior) && fd->ior > 0 ? fd->ior : 1.33;
+  double f0 = (ior - 1) / (ior + 1);
+  fl.f0 = (float)(f0 * f0);
+  double rough = isfinite(fd->roughness) ? fd->roughness : 0.1;
+  rough = rough < 0.02 ? 0.02 : rough > 1 ? 1 : rough;
+  fl.shininess = (float)(2 / (rough * rough) - 2 + 1);
+  memcpy(fl.color, fd->color, sizeof fl.color);
+
+  if (ensure_buffer(r, &r->fluid_cells, &r->cap_fcells, 2 * (size_t)ncell, sizeof(int32_t),
+                    CL_MEM_READ_ONLY, 1, err, errlen) ||
+      ensure_buffer(r, &r->fluid_pos, &r->cap_fpos, 3 * (size_t)fl.stride, sizeof(float),
+                    CL_MEM_READ_ONLY, 1, err, errlen))
+    return PROTO_E_DEVICE;
+  cl_kernel k = r->fluid;
+  cl_int cr =
+      clEnqueueWriteBuffer(r->dev.queue, r->fluid_cells, CL_FALSE, 0,
+                           2 * (size_t)ncell * sizeof(int32_t), r->host_fcells, 0, NULL, NULL);
+  if (cr == CL_SUCCESS)
+    cr = clEnqueueWriteBuffer(r->dev.queue, r->fluid_pos, CL_FALSE, 0,
+                              3 * (size_t)fl.stride * sizeof(float), r->host_fpos, 0, NULL, NULL);
+  if (cr == CL_SUCCESS)
+    cr = clSetKernelArg(k, 0, sizeof r->frame, &r->frame);
+  if (cr == CL_SUCCESS)
+    cr = clSetKernelArg(k, 1, sizeof fl, &fl);
+  if (cr == CL_SUCCESS)
+    cr = clSetKernelArg(k, 2, sizeof(cl_mem), &r->fluid_cells);
+  if (cr == CL_SUCCESS)
+    cr = clSetKernelArg(k, 3, sizeof(cl_mem), &r->fluid_pos);
+  if (cr == CL_SUCCESS)
+    cr = clSetKernelArg(k, 4, sizeof(cl_mem), &r->linear);
+  if (cr == CL_SUCCESS)
+    cr = clSetKernelArg(k, 5, sizeof(cl_mem), &r->depth);
+  size_t global[2] = {r->pitch, r->rows};
+  if (cr == CL_SUCCESS)
+    cr = clEnqueueNDRangeKernel(r->dev.queue, k, 2, NULL, global, r->fluid_local, 0, NULL, NULL);
+  if (cr == CL_SUCCESS)
+    cr = clFinish(r->dev.queue);
+  if (cr != CL_SUCCESS) {
+    set_err(err, errlen, "[render] fluid pass failed on %s: %s", r->dev.device_name,
+            cl_dev_strerror(cr));
+    return PROTO_E_DEVICE;
+  }
+  *ran = 1;
+  return 0;
+}
+
 /* Runs the tone-map pass from r->linear into r->rgba8, padding included. */
 static int pass_tonemap(renderer_t *r, const render_scene_t *scene, char *err, size_t errlen) {
   cl_int op;
@@ -1074,6 +1282,15 @@ int renderer_render(renderer_t *r, const render_scene_t *scene, const render_par
   if (rc != 0)
     return rc;
   add_pass(out, "objects", now_ms() - t);
+
+  if ((p->layers & LAYER_FLUID) && scene->fluid.count > 0) {
+    t = now_ms();
+    int ran;
+    if ((rc = pass_fluid(r, scene, &ran, err, errlen)) != 0)
+      return rc;
+    if (ran)
+      add_pass(out, "fluid", now_ms() - t);
+  }
 
   if (waves) {
     t = now_ms();
@@ -1186,7 +1403,16 @@ static int warm_up(renderer_t *r, char *err, size_t errlen) {
       {.shape = SHAPE_PLANE, .scale = {1, 1, 1}, .color = {1, 1, 1}},
       {.shape = SHAPE_MESH, .scale = {1, 1, 1}, .color = {0, 0, 1}, .mesh = &mesh},
   };
+  /* A few particles where the camera sees them, so the fluid kernel runs too. */
+  static const float drops[9] = {0, 1, 0, 0.2f, 1.1f, 0, -0.15f, 0.95f, 0.1f};
   render_scene_t scene = {
+      .fluid = {.count = 3,
+                .positions = drops,
+                .h = 0.61f,
+                .threshold = 0.765625f,
+                .color = {0.8f, 0.9f, 1},
+                .ior = 1.33f,
+                .roughness = 0.1f},
       .camera = {.eye = {0, 2, 5},
                  .target = {0, 0, 0},
                  .up = {0, 1, 0},
@@ -1231,7 +1457,8 @@ int renderer_create(const renderer_opts_t *opts, renderer_t **out, char *err, si
   if ((r->objects = cl_dev_kernel(&r->dev, "objects", err, errlen)) == NULL ||
       (r->tonemap = cl_dev_kernel(&r->dev, "tonemap", err, errlen)) == NULL ||
       (r->waves = cl_dev_kernel(&r->dev, "waves", err, errlen)) == NULL ||
-      (r->waves_march = cl_dev_kernel(&r->dev, "waves_march", err, errlen)) == NULL)
+      (r->waves_march = cl_dev_kernel(&r->dev, "waves_march", err, errlen)) == NULL ||
+      (r->fluid = cl_dev_kernel(&r->dev, "fluid", err, errlen)) == NULL)
     goto fail;
   r->objects_local[0] = OBJECTS_LX;
   r->objects_local[1] = OBJECTS_LY;
@@ -1248,6 +1475,12 @@ int renderer_create(const renderer_opts_t *opts, renderer_t **out, char *err, si
   r->waves_local[1] = r->objects_local[1];
   fit_local(r, r->waves, r->waves_local, 2);
   fit_local(r, r->waves_march, r->waves_local, 2);
+  /* One pixel per fluid work-item; the padded rows hold whole work-groups of it too. */
+  r->fluid_local[0] = FLUID_LX;
+  r->fluid_local[1] = FLUID_LY;
+  fit_local(r, r->fluid, r->fluid_local, 2);
+  while (r->fluid_local[1] > r->objects_local[1])
+    r->fluid_local[1] /= 2;
   /* Every local size is a power of two and the padded rows are a multiple of the widest
    * work-group (row_pixels); the rows are a multiple of the objects work-group's, so the tone
    * map's must not be taller. */
@@ -1272,8 +1505,8 @@ void renderer_destroy(renderer_t *r) {
   if (r->objects && r->tonemap && r->waves)
     cl_dev_save_binary(&r->dev);
   bvh_forget(r);
-  cl_mem bufs[] = {r->linear, r->depth,     r->rgba8,      r->objs, r->nodes,
-                   r->tris,   r->wave_recs, r->wave_lists, r->hbuf};
+  cl_mem bufs[] = {r->linear,    r->depth,      r->rgba8, r->objs,        r->nodes,    r->tris,
+                   r->wave_recs, r->wave_lists, r->hbuf,  r->fluid_cells, r->fluid_pos};
   for (size_t i = 0; i < sizeof bufs / sizeof bufs[0]; i++) {
     if (bufs[i])
       clReleaseMemObject(bufs[i]);
@@ -1286,10 +1519,14 @@ void renderer_destroy(renderer_t *r) {
     clReleaseKernel(r->waves);
   if (r->waves_march)
     clReleaseKernel(r->waves_march);
+  if (r->fluid)
+    clReleaseKernel(r->fluid);
   cl_dev_close(&r->dev);
   free(r->host_objs);
   free(r->host_waves);
   free(r->host_lists);
+  free(r->host_fcells);
+  free(r->host_fpos);
   free(r->scratch);
   free(r);
 }

@@ -1,0 +1,232 @@
+/*
+ * The fluid pass (SPEC §5.2): particles drawn as metaballs. The field of particle j at a point
+ * is P_j = s_j^2 with s_j = max(1 - r_j / h, 0); the surface is where I = sqrt(F) - T crosses
+ * zero, F = sum of P_j. Each work-item casts one pixel's camera ray through the host's uniform
+ * grid (vfx_fluid_t in common.h) with a 3-D DDA, samples the field only in cells whose list is
+ * not empty (elsewhere F is exactly zero), and ends the search at the opaque depth. The first
+ * crossing is bracketed by a safe step, refined by regula falsi and placed by the linear
+ * interpolation of the paper's eq. 5. The hit is shaded as water over the objects' colour and
+ * its distance written to the depth buffer, so the passes after it are clipped by the fluid.
+ *
+ * A ray does divergent work (its own cells, its own number of samples), so the lanes are not
+ * pixels but particles: the sums over a cell's list run 8 particles at a time in float8.
+ */
+#include "common.h"
+
+/* The sum of a float8's lanes. */
+static inline float fluid_hsum(float8 v) {
+  float4 a = v.lo + v.hi;
+  float2 b = a.lo + a.hi;
+  return b.x + b.y;
+}
+
+/*
+ * F at (x, y, z) over the 'n8' padded entries of the list at 'first'; writes the sum of the
+ * s_j to '*sum_s'. Padding entries lie at FLUID_PAD, where s_j is 0.
+ */
+static inline float fluid_field(__global const float *restrict pos, int stride, int first, int n8,
+                                float x, float y, float z, float inv_h, float *sum_s) {
+  float8 f = 0.0f, s = 0.0f;
+  for (int i = first; i < first + n8; i += 8) {
+    float8 dx = vload8(0, pos + i) - x;
+    float8 dy = vload8(0, pos + stride + i) - y;
+    float8 dz = vload8(0, pos + 2 * stride + i) - z;
+    float8 sj = fmax(1.0f - sqrt(dx * dx + dy * dy + dz * dz) * inv_h, 0.0f);
+    f += sj * sj;
+    s += sj;
+  }
+  *sum_s = fluid_hsum(s);
+  return fluid_hsum(f);
+}
+
+/* The outward normal at (x, y, z), -grad F / 2h = sum of s_j (x - p_j) / r_j, not unit. */
+static inline float3 fluid_normal(__global const float *restrict pos, int stride, int first, int n8,
+                                  float x, float y, float z, float inv_h) {
+  float8 gx = 0.0f, gy = 0.0f, gz = 0.0f;
+  for (int i = first; i < first + n8; i += 8) {
+    float8 dx = x - vload8(0, pos + i);
+    float8 dy = y - vload8(0, pos + stride + i);
+    float8 dz = z - vload8(0, pos + 2 * stride + i);
+    float8 r = sqrt(dx * dx + dy * dy + dz * dz);
+    float8 w = fmax(1.0f - r * inv_h, 0.0f) / fmax(r, 1e-20f);
+    gx += w * dx, gy += w * dy, gz += w * dz;
+  }
+  return (float3)(fluid_hsum(gx), fluid_hsum(gy), fluid_hsum(gz));
+}
+
+/*
+ * Searches the ray e + t d over [ta, tb], inside one cell whose list ('first', 'n8' padded
+ * entries, 'm' real ones) holds every particle that reaches it, for the first t with
+ * F >= T^2. Returns that t, or INFINITY.
+ *
+ * The step. Let F and S be the sums of s_j^2 and s_j at the current point x. Moving by u,
+ * |u| = delta h, changes each r_j by at most |u|, so each s_j grows by at most delta, and a
+ * particle with s_j = 0 reaches at most delta. Hence, over the whole step,
+ *   F(x + u) <= sum over the list of (s_j + delta)^2 = F + 2 delta S + m delta^2,
+ * which stays below T^2 for delta < (T^2 - F) / (S + sqrt(S^2 + m (T^2 - F))) (the positive
+ * root of the quadratic, written without cancellation). So no point of the surface, however
+ * thin the sheet, lies strictly inside a step of that length: nothing is skipped, and no
+ * sample count is capped. Far from the surface the step is long (a lone particle's shell is
+ * crossed in a handful of samples); close to a tangent it shrinks, so it has a floor,
+ * 'min_step' (h / 2000): a floor step can pass over only a piece of the ray shorter than it
+ * that is inside the fluid, i.e. a graze of the surface whose chord is under h / 2000, far
+ * below a pixel at any distance we render. The crossing found is bracketed and refined by
+ * regula falsi (Illinois) to 'tol', then placed by linear interpolation (the paper's eq. 5).
+ */
+static float fluid_search(__global const float *restrict pos, const vfx_fluid_t *fl, int first,
+                          int n8, int m, float ex, float ey, float ez, float dx, float dy, float dz,
+                          float ta, float tb) {
+  float t2 = fl->threshold * fl->threshold, s;
+  float f = fluid_field(pos, fl->stride, first, n8, ex + ta * dx, ey + ta * dy, ez + ta * dz,
+                        fl->inv_h, &s);
+  if (f >= t2)
+    return ta;
+  float fm = (float)m;
+  while (ta < tb) {
+    float gap = t2 - f;
+    float delta = gap / (s + sqrt(s * s + fm * gap));
+    float tn = fmin(ta + fmax(delta * fl->h, fl->min_step), tb);
+    float sn;
+    float fn = fluid_field(pos, fl->stride, first, n8, ex + tn * dx, ey + tn * dy, ez + tn * dz,
+                           fl->inv_h, &sn);
+    if (fn >= t2) {
+      /* I(ta) < 0 <= I(tn): refine on I = sqrt(F) - T, which is close to linear near the
+       * surface (exactly so for a lone particle, where sqrt(F) = 1 - r / h). */
+      float a = ta, b = tn, ga = sqrt(f) - fl->threshold, gb = sqrt(fn) - fl->threshold;
+      int side = 0;
+      for (int k = 0; k < 40 && b - a > fl->tol; k++) {
+        float c = a + (b - a) * (ga / (ga - gb));
+        if (!(c > a && c < b))
+          c = 0.5f * (a + b);
+        float gs;
+        float gc = sqrt(fluid_field(pos, fl->stride, first, n8, ex + c * dx, ey + c * dy,
+                                    ez + c * dz, fl->inv_h, &gs)) -
+                   fl->threshold;
+        if (gc >= 0.0f) {
+          b = c, gb = gc;
+          if (side == 1)
+            ga *= 0.5f;
+          side = 1;
+        } else {
+          a = c, ga = gc;
+          if (side == -1)
+            gb *= 0.5f;
+          side = -1;
+        }
+      }
+      float w = ga / (ga - gb);
+      return a + (b - a) * (w >= 0.0f && w <= 1.0f ? w : 0.5f);
+    }
+    ta = tn, f = fn, s = sn;
+  }
+  return INFINITY;
+}
+
+/*
+ * One pixel per work-item over the padded image the objects pass set up. Reads the opaque
+ * colour and depth there; where the fluid's surface is nearer, writes the water's colour to
+ * 'linear' and its distance to 'depth'.
+ */
+__kernel void fluid(vfx_frame_t f, vfx_fluid_t fl, __global const int *restrict cells,
+                    __global const float *restrict pos, __global float *restrict linear,
+                    __global float *restrict depth) {
+  int x = get_global_id(0), y = get_global_id(1);
+  int o = y * f.pitch + x;
+  float ex = f.eye[0], ey = f.eye[1], ez = f.eye[2];
+  float px = x + 0.5f, py = y + 0.5f;
+  float dx = f.base[0] + px * f.step_x[0] + py * f.step_y[0];
+  float dy = f.base[1] + px * f.step_x[1] + py * f.step_y[1];
+  float dz = f.base[2] + px * f.step_x[2] + py * f.step_y[2];
+  float il = 1.0f / sqrt(dx * dx + dy * dy + dz * dz);
+  dx *= il, dy *= il, dz *= il;
+
+  /* The part of [near, min(opaque depth, far)] inside the grid's box. */
+  float opaque = depth[o];
+  float ix = 1.0f / dx, iy = 1.0f / dy, iz = 1.0f / dz;
+  float t0x = (fl.box_min[0] - ex) * ix, t1x = (fl.box_max[0] - ex) * ix;
+  float t0y = (fl.box_min[1] - ey) * iy, t1y = (fl.box_max[1] - ey) * iy;
+  float t0z = (fl.box_min[2] - ez) * iz, t1z = (fl.box_max[2] - ez) * iz;
+  float t = fmax(fmax(fmin(t0x, t1x), fmin(t0y, t1y)), fmax(fmin(t0z, t1z), f.near_));
+  float tend = fmin(fmin(fmax(t0x, t1x), fmax(t0y, t1y)), fmin(fmax(t0z, t1z), fmin(opaque, f.far_)));
+  if (!(t <= tend))
+    return;
+
+  /* 3-D DDA from the cell holding the entry point. */
+  float cx = (ex + t * dx - fl.origin[0]) * fl.inv_cell;
+  float cy = (ey + t * dy - fl.origin[1]) * fl.inv_cell;
+  float cz = (ez + t * dz - fl.origin[2]) * fl.inv_cell;
+  int kx = clamp((int)floor(cx), 0, fl.dims[0] - 1);
+  int ky = clamp((int)floor(cy), 0, fl.dims[1] - 1);
+  int kz = clamp((int)floor(cz), 0, fl.dims[2] - 1);
+  int sx = dx > 0.0f ? 1 : -1, sy = dy > 0.0f ? 1 : -1, sz = dz > 0.0f ? 1 : -1;
+  float tdx = fabs(fl.cell * ix), tdy = fabs(fl.cell * iy), tdz = fabs(fl.cell * iz);
+  float nx = (fl.origin[0] + (kx + (sx > 0)) * fl.cell - ex) * ix;
+  float ny = (fl.origin[1] + (ky + (sy > 0)) * fl.cell - ey) * iy;
+  float nz = (fl.origin[2] + (kz + (sz > 0)) * fl.cell - ez) * iz;
+  if (dx == 0.0f)
+    nx = INFINITY;
+  if (dy == 0.0f)
+    ny = INFINITY;
+  if (dz == 0.0f)
+    nz = INFINITY;
+
+  float hit = INFINITY;
+  int first = 0, n8 = 0;
+  for (;;) {
+    float tb = fmin(fmin(nx, ny), fmin(nz, tend));
+    int c = (kz * fl.dims[1] + ky) * fl.dims[0] + kx;
+    int m = cells[2 * c + 1];
+    if (m > 0 && tb >= t) {
+      first = cells[2 * c], n8 = (m + 7) & ~7;
+      hit = fluid_search(pos, &fl, first, n8, m, ex, ey, ez, dx, dy, dz, t, tb);
+      if (hit < INFINITY)
+        break;
+    }
+    if (tb >= tend)
+      break;
+    t = fmax(t, tb);
+    if (nx <= ny && nx <= nz)
+      kx += sx, nx += tdx;
+    else if (ny <= nz)
+      ky += sy, ny += tdy;
+    else
+      kz += sz, nz += tdz;
+    if ((uint)kx >= (uint)fl.dims[0] || (uint)ky >= (uint)fl.dims[1] ||
+        (uint)kz >= (uint)fl.dims[2])
+      break;
+  }
+  if (!(hit < INFINITY))
+    return;
+
+  /* Water: Schlick's Fresnel mixes the reflected background (brighter towards the zenith, as
+   * a sky would be; the scene has no environment map) with the transmitted colour behind,
+   * tinted; a Blinn-Phong highlight of the light sits on top. */
+  float hx = ex + hit * dx, hy = ey + hit * dy, hz = ez + hit * dz;
+  float3 n = fluid_normal(pos, fl.stride, first, n8, hx, hy, hz, fl.inv_h);
+  float nl = length(n);
+  n = nl > 0.0f ? n / nl : (float3)(-dx, -dy, -dz);
+  float3 d = (float3)(dx, dy, dz), v = -d;
+  float cosv = dot(n, v);
+  if (cosv < 0.0f)
+    n = -n, cosv = -cosv;
+  float k = 1.0f - cosv, k2 = k * k;
+  float fr = fl.f0 + (1.0f - fl.f0) * k2 * k2 * k;
+  float3 r = d + 2.0f * cosv * n;
+  float sky = 0.7f + 0.6f * clamp(r.y, 0.0f, 1.0f);
+  float3 l = (float3)(f.light_dir[0], f.light_dir[1], f.light_dir[2]);
+  float3 lrgb = (float3)(f.light_rgb[0], f.light_rgb[1], f.light_rgb[2]);
+  float3 hv = l + v;
+  float hl = length(hv);
+  float nh = hl > 0.0f ? fmax(dot(n, hv) / hl, 0.0f) : 0.0f;
+  float spec = dot(n, l) > 0.0f ? pow(nh, fl.shininess) * (fl.shininess + 8.0f) * 0.0398f : 0.0f;
+  /* Absorption as through water reaching back to the opaque surface behind, at most 3h of it
+   * (we do not trace the exit point): thin sheets over the floor stay clear, deep water and
+   * drops against the sky take the tint's full colour. */
+  float4 behind = vload4(o, linear);
+  float depth_h = clamp((fmin(opaque, hit + 3.0f * fl.h) - hit) * fl.inv_h, 0.35f, 3.0f);
+  float3 tint = pow((float3)(fl.color[0], fl.color[1], fl.color[2]), depth_h);
+  float3 bg = (float3)(f.bg[0], f.bg[1], f.bg[2]);
+  float3 col = fr * (bg * sky + spec * lrgb) + (1.0f - fr) * tint * behind.xyz;
+  vstore4((float4)(col, 1.0f), o, linear);
+  depth[o] = hit;
+}
