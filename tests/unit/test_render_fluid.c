@@ -12,20 +12,9 @@
 #include <stdlib.h>
 #include <string.h>
 
+#include "check.h"
+#include "pixel_ray.h"
 #include "render.h"
-
-static int failures, checks;
-
-#define CHECK(cond, ...)                                                                           \
-  do {                                                                                             \
-    checks++;                                                                                      \
-    if (!(cond)) {                                                                                 \
-      failures++;                                                                                  \
-      fprintf(stderr, "%s:%d: CHECK(%s) failed: ", __FILE__, __LINE__, #cond);                     \
-      fprintf(stderr, __VA_ARGS__);                                                                \
-      fputc('\n', stderr);                                                                         \
-    }                                                                                              \
-  } while (0)
 
 #define H 0.61
 #define T 0.765625
@@ -37,45 +26,6 @@ static uint64_t rng = 0x9e3779b97f4a7c15ull;
 static double uniform(void) {
   rng ^= rng >> 12, rng ^= rng << 25, rng ^= rng >> 27;
   return (double)((rng * 0x2545f4914f6cdd1dull) >> 11) / 9007199254740992.0;
-}
-
-typedef struct ray {
-  double o[3], d[3];
-} ray_t;
-
-static double dot3(const double *a, const double *b) {
-  return a[0] * b[0] + a[1] * b[1] + a[2] * b[2];
-}
-
-/* Pixel (x, y)'s ray by SPEC §4, built in double: through the pixel centre of an image plane at
- * distance 1 spanning tan(fov_y / 2) * (w / h, 1) about the forward direction. */
-static ray_t pixel_ray(const rcamera_t *c, int w, int h, int x, int y) {
-  double fw[3], rt[3], up[3];
-  for (int i = 0; i < 3; i++)
-    fw[i] = (double)c->target[i] - c->eye[i];
-  double n = sqrt(dot3(fw, fw));
-  for (int i = 0; i < 3; i++)
-    fw[i] /= n;
-  rt[0] = fw[1] * c->up[2] - fw[2] * c->up[1];
-  rt[1] = fw[2] * c->up[0] - fw[0] * c->up[2];
-  rt[2] = fw[0] * c->up[1] - fw[1] * c->up[0];
-  n = sqrt(dot3(rt, rt));
-  for (int i = 0; i < 3; i++)
-    rt[i] /= n;
-  up[0] = rt[1] * fw[2] - rt[2] * fw[1];
-  up[1] = rt[2] * fw[0] - rt[0] * fw[2];
-  up[2] = rt[0] * fw[1] - rt[1] * fw[0];
-  double half = tan(c->fov_y * M_PI / 360);
-  double u = (2 * (x + 0.5) / w - 1) * half * w / h, v = (1 - 2 * (y + 0.5) / h) * half;
-  ray_t r;
-  for (int i = 0; i < 3; i++) {
-    r.o[i] = c->eye[i];
-    r.d[i] = fw[i] + u * rt[i] + v * up[i];
-  }
-  n = sqrt(dot3(r.d, r.d));
-  for (int i = 0; i < 3; i++)
-    r.d[i] /= n;
-  return r;
 }
 
 /* The distance from 'p' to the line of 'r', and the ray parameter of the closest point. */

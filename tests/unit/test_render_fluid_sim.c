@@ -11,21 +11,9 @@
 #include <string.h>
 #include <time.h>
 
+#include "check.h"
 #include "cl_device.h"
 #include "sim_fluid.h"
-
-static int failures, checks;
-
-#define CHECK(cond, ...)                                                                           \
-  do {                                                                                             \
-    checks++;                                                                                      \
-    if (!(cond)) {                                                                                 \
-      failures++;                                                                                  \
-      fprintf(stderr, "%s:%d: CHECK(%s) failed: ", __FILE__, __LINE__, #cond);                     \
-      fprintf(stderr, __VA_ARGS__);                                                                \
-      fputc('\n', stderr);                                                                         \
-    }                                                                                              \
-  } while (0)
 
 static cl_dev_t dev;
 static char err[8192];
