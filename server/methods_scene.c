@@ -7,6 +7,7 @@
 #include <string.h>
 
 #include "dispatch.h"
+#include "fluid.h"
 #include "frames.h"
 
 static void answer_scene_error(call_t *call, const scene_error_t *err, const char *fallback) {
@@ -139,7 +140,15 @@ static void sim_step(call_t *call) {
     return;
   unsigned steps = (unsigned)cJSON_GetObjectItem(call->params, "steps")->valuedouble;
   const cJSON *dt = cJSON_GetObjectItem(call->params, "dt");
-  scene_advance(e->scene, steps, dt ? dt->valuedouble : scene_dt(e->scene));
+  double step_dt = dt ? dt->valuedouble : scene_dt(e->scene);
+  scene_advance(e->scene, steps, step_dt);
+  /* The fluid steps on the worker; the answer waits for it. */
+  if (fluid_wants_step(e)) {
+    if (fluid_submit_step(call->srv, e, steps, step_dt, call) != 0)
+      call_error(call, PROTO_E_BUSY, NULL, "%s: the render queue is full",
+                 proto_err_message(PROTO_E_BUSY));
+    return;
+  }
   call_result(call, clock_json(e));
 }
 
@@ -155,6 +164,9 @@ static void on_play(uv_timer_t *t) {
       n = (uint64_t)ceil(e->rate);
     scene_advance(e->scene, (unsigned)n, scene_dt(e->scene));
     e->play_steps = due;
+    /* One fluid job at a time per scene: while one runs, the fluid skips these steps. */
+    if (fluid_wants_step(e) && !fluid_busy(e))
+      fluid_submit_step(e->srv, e, (unsigned)n, scene_dt(e->scene), NULL);
   }
 }
 
@@ -270,6 +282,8 @@ static const sch_field_t pause_params[] = {PARAM_SCENE, {0}};
 
 static const int auth_errors[] = {PROTO_E_UNAUTHORIZED, 0};
 static const int scene_errors[] = {PROTO_E_UNAUTHORIZED, PROTO_E_NOT_FOUND, 0};
+static const int step_errors[] = {PROTO_E_UNAUTHORIZED, PROTO_E_NOT_FOUND, PROTO_E_BUSY,
+                                  PROTO_E_DEVICE, 0};
 static const int set_errors[] = {PROTO_E_UNAUTHORIZED, PROTO_E_NOT_FOUND, PROTO_E_LIMIT, 0};
 
 #define OBJ(f)                                                                                     \
@@ -315,7 +329,7 @@ const method_t method_sim_step = {.name = "sim.step",
                                   .summary = "Advances the scene's simulations by 'steps' steps.",
                                   .params = OBJ(step_params),
                                   .result = "{time, frame}",
-                                  .errors = scene_errors,
+                                  .errors = step_errors,
                                   .handler = sim_step};
 const method_t method_sim_play = {
     .name = "sim.play",

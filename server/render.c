@@ -1538,3 +1538,7 @@ const char *renderer_platform_name(const renderer_t *r) {
 const char *renderer_device_name(const renderer_t *r) {
   return r->dev.device_name;
 }
+
+cl_dev_t *renderer_device(renderer_t *r) {
+  return &r->dev;
+}

@@ -66,6 +66,9 @@ void renderer_destroy(renderer_t *r);
 
 const char *renderer_platform_name(const renderer_t *r);
 const char *renderer_device_name(const renderer_t *r);
+/* The renderer's OpenCL device, whose program holds every kernel (kernels/sph.cl too), for
+ * simulations run on the renderer's thread. */
+struct cl_dev *renderer_device(renderer_t *r);
 
 /*
  * Renders one frame. Returns 0, or a PROTO_E_* code (PROTO_E_DEVICE for an OpenCL failure,

@@ -29,5 +29,38 @@ void render_scene_unref(render_scene_t *s) {
       mesh_unref(s->objects[i].mesh);
   free(s->objects);
   free(s->waves);
+  particles_unref(s->fluid.owner);
   free(s);
+}
+
+particles_t *particles_new(uint32_t n) {
+  particles_t *p = calloc(1, sizeof *p);
+  if (!p)
+    return NULL;
+  size_t floats = (size_t)(n ? n : 1) * 3;
+  p->pos = calloc(floats, sizeof(float));
+  p->vel = calloc(floats, sizeof(float));
+  if (!p->pos || !p->vel) {
+    free(p->pos);
+    free(p->vel);
+    free(p);
+    return NULL;
+  }
+  atomic_init(&p->refs, 1);
+  p->count = n;
+  return p;
+}
+
+particles_t *particles_ref(particles_t *p) {
+  if (p)
+    atomic_fetch_add_explicit(&p->refs, 1, memory_order_relaxed);
+  return p;
+}
+
+void particles_unref(particles_t *p) {
+  if (!p || atomic_fetch_sub_explicit(&p->refs, 1, memory_order_acq_rel) != 1)
+    return;
+  free(p->pos);
+  free(p->vel);
+  free(p);
 }

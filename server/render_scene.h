@@ -65,14 +65,32 @@ typedef struct rwave {
 typedef struct rfluid {
   uint32_t count;
   const float *positions; /* count × xyz, world units; shared, immutable (see 'owner'). */
-  void *owner;            /* Opaque reference keeping 'positions' alive, released by the
-                             scene's owner; NULL when the scene owns nothing here. */
+  void *owner;            /* A particles_t reference keeping 'positions' alive, dropped by
+                             render_scene_unref; NULL when the scene owns nothing here. */
   float h;                /* Metaball radius, world units (0.61 in the paper). */
   float threshold;        /* T (0.765625 in the paper). */
   float color[3];         /* Transmission tint, linear RGB. */
   float ior;              /* Index of refraction for the Fresnel term (1.33). */
   float roughness;        /* Specular spread, 0..1. */
 } rfluid_t;
+
+/*
+ * A fluid's particles on the host: immutable once published, shared by the scene, its
+ * snapshots and the fluid jobs, freed with the last reference. 'pos' and 'vel' hold
+ * count × xyz each.
+ */
+typedef struct particles {
+  atomic_int refs;
+  uint32_t count;
+  float *pos, *vel;
+} particles_t;
+
+/* A buffer of 'n' particles, positions and velocities zeroed, with one reference; NULL on
+ * OOM. */
+particles_t *particles_new(uint32_t n);
+particles_t *particles_ref(particles_t *p);
+/* Drops a reference; NULL is fine. */
+void particles_unref(particles_t *p);
 
 typedef struct render_scene {
   atomic_int refs;

@@ -338,7 +338,43 @@ static tone_map_t tone_map_of(const char *s) {
 }
 
 /* Builds the snapshot of a validated document, loading meshes; NULL with 'err' set. */
-static render_scene_t *compile(const cJSON *doc, scene_error_t *err) {
+/*
+ * The fluid's checks across fields: the tank is not empty, and writes the real particle count
+ * into fluid.count (read-only to clients).
+ */
+static int check_fluid(cJSON *doc, const particles_t *p, scene_error_t *err) {
+  cJSON *fluid = get(doc, "fluid");
+  const cJSON *b = get(fluid, "bounds");
+  double lo[3], hi[3];
+  vec3d(get(b, "min"), lo);
+  vec3d(get(b, "max"), hi);
+  for (int i = 0; i < 3; i++)
+    if (!(lo[i] < hi[i]))
+      return set_err(err, PROTO_E_INVALID_PARAMS, "fluid.bounds.max",
+                     "fluid.bounds.max: must be above fluid.bounds.min on every axis");
+  cJSON_SetNumberValue(get(fluid, "count"), (p ? (double)p->count : 0));
+  return 0;
+}
+
+/* Fills rs->fluid from the document and the particles, taking a reference to them when the
+ * fluid is drawn; a fluid that is disabled or empty is not drawn. */
+static void compile_fluid(const cJSON *doc, particles_t *p, render_scene_t *rs) {
+  memset(&rs->fluid, 0, sizeof rs->fluid);
+  const cJSON *fluid = get(doc, "fluid");
+  if (!cJSON_IsTrue(get(fluid, "enabled")) || !p || p->count == 0)
+    return;
+  const cJSON *mat = get(fluid, "material");
+  rs->fluid.count = p->count;
+  rs->fluid.positions = p->pos;
+  rs->fluid.owner = particles_ref(p);
+  rs->fluid.h = (float)get(fluid, "h")->valuedouble;
+  rs->fluid.threshold = (float)get(fluid, "threshold")->valuedouble;
+  vec3f(get(mat, "color"), rs->fluid.color);
+  rs->fluid.ior = (float)get(mat, "ior")->valuedouble;
+  rs->fluid.roughness = (float)get(mat, "roughness")->valuedouble;
+}
+
+static render_scene_t *compile(const cJSON *doc, particles_t *particles, scene_error_t *err) {
   render_scene_t *rs = calloc(1, sizeof *rs);
   if (!rs) {
     set_err(err, PROTO_E_INTERNAL, "", "out of memory");
@@ -409,6 +445,7 @@ static render_scene_t *compile(const cJSON *doc, scene_error_t *err) {
     set_err(err, PROTO_E_INTERNAL, "", "out of memory");
     return NULL;
   }
+  compile_fluid(doc, particles, rs);
   return rs;
 }
 
@@ -418,24 +455,25 @@ static render_scene_t *compile(const cJSON *doc, scene_error_t *err) {
  * value written there is replaced) and compiles it. Returns the new snapshot, or NULL with
  * 'err' set.
  */
-static render_scene_t *prepare(cJSON *doc, scene_error_t *err) {
+static render_scene_t *prepare(cJSON *doc, particles_t *particles, scene_error_t *err) {
   sch_error_t se;
   if (sch_validate(&scene_schema, doc, "", &se) != 0) {
     set_err(err, PROTO_E_INVALID_PARAMS, se.path, "%s", se.message);
     return NULL;
   }
-  if (check_cross(doc, err) != 0 || check_waves(doc, err) != 0)
+  if (check_cross(doc, err) != 0 || check_waves(doc, err) != 0 ||
+      check_fluid(doc, particles, err) != 0)
     return NULL;
   double now = get(get(doc, "sim"), "time")->valuedouble;
   const sch_field_t *wf = wave_fields();
   for (cJSON *w = get(doc, "waves")->child; w; w = w->next)
     anim_apply_keys(w, wf, now);
-  return compile(doc, err);
+  return compile(doc, particles, err);
 }
 
 /* Makes 'doc' (owned, taken in every case) the scene's document if it is valid. */
 static int commit(scene_t *s, cJSON *doc, scene_error_t *err) {
-  render_scene_t *rs = prepare(doc, err);
+  render_scene_t *rs = prepare(doc, s->particles, err);
   if (!rs) {
     cJSON_Delete(doc);
     cache_prune();
@@ -483,6 +521,7 @@ void scene_destroy(scene_t *s) {
   if (!s)
     return;
   render_scene_unref(s->snapshot);
+  particles_unref(s->particles);
   cJSON_Delete(s->doc);
   free(s);
   cache_prune();
@@ -649,7 +688,7 @@ int scene_replace(scene_t *s, const cJSON *doc, scene_error_t *err) {
  * (animation moves them); the renderer may still hold 'old', so it is copied rather than
  * changed. NULL on OOM. */
 static render_scene_t *snapshot_advanced(const render_scene_t *old, const cJSON *doc,
-                                         uint64_t frame, double time) {
+                                         particles_t *particles, uint64_t frame, double time) {
   render_scene_t *rs = malloc(sizeof *rs);
   if (!rs)
     return NULL;
@@ -672,6 +711,7 @@ static render_scene_t *snapshot_advanced(const render_scene_t *old, const cJSON 
       if (rs->objects[i].mesh)
         mesh_ref(rs->objects[i].mesh);
   }
+  compile_fluid(doc, particles, rs);
   rs->frame = frame;
   rs->time = time;
   return rs;
@@ -701,11 +741,26 @@ void scene_advance(scene_t *s, unsigned steps, double dt) {
   const sch_field_t *wf = wave_fields();
   for (cJSON *w = get(s->doc, "waves")->child; w; w = w->next)
     anim_advance(w, wf, steps * dt, t);
-  render_scene_t *rs = snapshot_advanced(s->snapshot, s->doc, (uint64_t)f, t);
+  render_scene_t *rs = snapshot_advanced(s->snapshot, s->doc, s->particles, (uint64_t)f, t);
   if (rs) {
     render_scene_unref(s->snapshot);
     s->snapshot = rs;
   }
+}
+
+int scene_set_particles(scene_t *s, particles_t *p) {
+  const cJSON *sim = get(s->doc, "sim");
+  render_scene_t *rs =
+      snapshot_advanced(s->snapshot, s->doc, p, (uint64_t)get(sim, "frame")->valuedouble,
+                        get(sim, "time")->valuedouble);
+  if (!rs)
+    return -1;
+  particles_unref(s->particles);
+  s->particles = p;
+  cJSON_SetNumberValue(get(get(s->doc, "fluid"), "count"), (p ? (double)p->count : 0));
+  render_scene_unref(s->snapshot);
+  s->snapshot = rs;
+  return 0;
 }
 
 double scene_dt(const scene_t *s) {

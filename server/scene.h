@@ -17,6 +17,7 @@ typedef struct scene {
   cJSON *doc;               /* The validated document, defaults filled in. */
   render_scene_t *snapshot; /* Compiled from 'doc'; replaced on every change. */
   unsigned long version;    /* Incremented on every change. */
+  particles_t *particles;   /* The fluid's particles (a reference), NULL for none. */
 } scene_t;
 
 typedef struct scene_error {
@@ -56,6 +57,13 @@ int scene_replace(scene_t *s, const cJSON *doc, scene_error_t *err);
  * with it (their current values written into the document); compiles one snapshot per call,
  * however many steps it takes. */
 void scene_advance(scene_t *s, unsigned steps, double dt);
+
+/*
+ * Makes 'p' (a reference, taken on success; NULL for none) the fluid's particles: fluid.count
+ * and a fresh snapshot follow at once. The caller has validated them. Returns 0, or -1 on OOM
+ * with nothing changed.
+ */
+int scene_set_particles(scene_t *s, particles_t *p);
 
 /* Convenience reads of the validated document. */
 double scene_dt(const scene_t *s);

@@ -8,6 +8,7 @@
 #include <stdlib.h>
 #include <string.h>
 
+#include "fluid.h"
 #include "files.h"
 #include "frames.h"
 #include "log.h"
@@ -105,6 +106,7 @@ void server_remove_scene(server_t *s, scene_entry_t *e) {
       break;
     }
   uv_timer_stop(&e->play);
+  fluid_scene_removed(s, e);
   uv_close((uv_handle_t *)&e->play, on_play_closed);
 }
 

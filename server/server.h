@@ -22,6 +22,7 @@ typedef struct call call_t;
 typedef struct sub sub_t;
 typedef struct worker worker_t;
 typedef struct method method_t;
+typedef struct fluid_host fluid_host_t;
 
 /* One response (or nothing, for a notification) inside a reply. */
 typedef struct reply_part {
@@ -87,6 +88,7 @@ typedef struct scene_entry {
   uint64_t play_start_ns;
   uint64_t play_steps; /* Steps taken since play_start_ns. */
   int closing;
+  struct fluid_host *fluid; /* The fluid's simulation state (methods_fluid.c); NULL for none. */
 } scene_entry_t;
 
 struct server {

@@ -60,6 +60,16 @@ static void worker_main(void *arg) {
     uv_mutex_unlock(&w->mu);
 
     j->t_started_ns = mono_ns();
+    if (j->run) {
+      j->run(w->renderer, j);
+      j->t_done_ns = mono_ns();
+      render_scene_unref(j->scene);
+      j->scene = NULL;
+      uv_mutex_lock(&w->mu);
+      push(&w->done_head, &w->done_tail, j);
+      uv_async_send(&w->async);
+      continue;
+    }
     if (j->has_camera)
       j->params.camera = &j->camera;
     /* A PNG frame is rendered as RGBA8 here and encoded by the encoder thread. */
@@ -181,7 +191,7 @@ worker_t *worker_start(uv_loop_t *loop, renderer_t *r, int max_queue) {
 
 int worker_submit(worker_t *w, job_t *j) {
   uv_mutex_lock(&w->mu);
-  if (w->depth >= w->max_queue || w->stop) {
+  if ((w->depth >= w->max_queue && !j->must_run) || w->stop) {
     uv_mutex_unlock(&w->mu);
     return -1;
   }
@@ -228,10 +238,15 @@ void worker_stop(worker_t *w) {
   on_async(&w->async);
   while (cancelled) {
     job_t *next = cancelled->next;
+    if (cancelled->must_run) {
+      /* The worker thread is gone, so this thread may use the renderer. */
+      cancelled->run(w->renderer, cancelled);
+    } else {
+      cancelled->code = PROTO_E_BUSY;
+      snprintf(cancelled->err, sizeof cancelled->err, "the server is shutting down");
+    }
     render_scene_unref(cancelled->scene);
     cancelled->scene = NULL;
-    cancelled->code = PROTO_E_BUSY;
-    snprintf(cancelled->err, sizeof cancelled->err, "the server is shutting down");
     cancelled->done(cancelled);
     cancelled = next;
   }

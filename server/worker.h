@@ -26,13 +26,22 @@ struct job {
   int code;            /* 0 or a PROTO_E_* code. */
   char err[512];
   uint64_t t_queued_ns, t_started_ns, t_done_ns;
+  /*
+   * When set, the job is not a render: the worker calls run(renderer, job) instead (with
+   * 'scene' as the job left it), then 'done' as for a render.
+   */
+  void (*run)(renderer_t *r, job_t *j);
+  /* A 'run' job that must happen even at shutdown (freeing what the worker owns): it is
+   * queued past 'max_queue', and worker_stop runs it rather than cancelling it. */
+  int must_run;
   void (*done)(job_t *j); /* Runs on the loop thread; frees the job. */
   void *ctx;
 };
 
 /* Starts the worker thread, which takes ownership of 'r'. Returns NULL on failure. */
 worker_t *worker_start(uv_loop_t *loop, renderer_t *r, int max_queue);
-/* Queues 'j'. Returns 0, or -1 when 'max_queue' jobs are already waiting. */
+/* Queues 'j'. Returns 0, or -1 when 'max_queue' jobs are already waiting (and 'j' is not
+ * must_run) or the worker has stopped. */
 int worker_submit(worker_t *w, job_t *j);
 /* Jobs waiting, not counting the one running. */
 int worker_queue_depth(worker_t *w);

@@ -1,0 +1,215 @@
+#!/usr/bin/env python3
+"""
+The particle fluid against a real volfxd: fluid.set_particles / fluid.get_particles round-trip
+bit-exact, sim.step moves the particles under gravity inside the bounds, the renderer draws
+them (beauty and depth), bad inputs are refused with data.path and nothing changed, and a
+scene with a live fluid can be deleted and the server shut down cleanly.
+
+    python3 tests/integration/test_fluid.py --bin build/bin
+"""
+
+import base64
+import json
+import math
+import os
+import struct
+import sys
+import time
+
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+import mock  # noqa: E402
+from mock import E_PARAMS, expect_error  # noqa: E402
+
+E_LIMIT = -32003
+
+suite = mock.Suite("test_fluid", timeout_s=400)
+suite.server_args = []
+T = suite.test
+
+H = 0.61
+
+
+def block(n_side=10, spacing=H / 2, base=(-1.4, 0.0, -1.4)):
+    """n_side³ particles on a cubic lattice starting at 'base'."""
+    pts = []
+    for k in range(n_side):
+        for j in range(n_side):
+            for i in range(n_side):
+                pts.append((base[0] + i * spacing, base[1] + j * spacing, base[2] + k * spacing))
+    return pts
+
+
+def pack(pts):
+    return struct.pack("<%df" % (3 * len(pts)), *[c for p in pts for c in p])
+
+
+def b64(pts):
+    return base64.b64encode(pack(pts)).decode()
+
+
+def unpack(data):
+    vals = struct.unpack("<%df" % (len(data) // 4), data)
+    return [vals[i:i + 3] for i in range(0, len(vals), 3)]
+
+
+def fresh(c, name):
+    c.ok("scene.create", {"name": name})
+
+
+@T
+def round_trip(s):
+    c = s.srv.connect()
+    fresh(c, "rt")
+    pts = block()
+    r, _ = c.ok("fluid.set_particles", {"scene": "rt", "positions": b64(pts)})
+    s.eq(r.get("count"), 1000, "set_particles reports the count")
+    r, att = c.ok("fluid.get_particles", {"scene": "rt"})
+    s.eq(r.get("count"), 1000, "get_particles count")
+    s.eq(r.get("field"), "positions", "get_particles field defaults to positions")
+    s.eq((r.get("attachment") or {}).get("format"), "f32", "get_particles format")
+    s.eq((r.get("attachment") or {}).get("bytes"), 12000, "get_particles bytes")
+    s.check(att == pack(pts), "positions come back bit-exact")
+    r, att = c.ok("fluid.get_particles", {"scene": "rt", "field": "velocities"})
+    s.check(att == bytes(12000), "velocities default to rest")
+    vel = [(0.5, -0.25, 1.0)] * 1000
+    c.ok("fluid.set_particles",
+         {"scene": "rt", "positions": b64(pts), "velocities": b64(vel)})
+    r, att = c.ok("fluid.get_particles", {"scene": "rt", "field": "velocities"})
+    s.check(att == pack(vel), "velocities come back bit-exact")
+    s.eq(c.ok("scene.get", {"scene": "rt", "path": "fluid.count"})[0], 1000,
+         "fluid.count follows the particles")
+    # fluid.count is read-only.
+    c.ok("scene.set", {"scene": "rt", "path": "fluid.count", "value": 5})
+    s.eq(c.ok("scene.get", {"scene": "rt", "path": "fluid.count"})[0], 1000,
+         "a written fluid.count is replaced by the real count")
+    r, _ = c.ok("fluid.get_particles", {"scene": "rt", "encoding": "base64"})
+    s.check(base64.b64decode(r.get("data", "")) == pack(pts), "base64 encoding of get_particles")
+    c.ok("scene.delete", {"name": "rt"})
+
+
+@T
+def step_under_gravity(s):
+    c = s.srv.connect()
+    fresh(c, "st")
+    pts = block()
+    c.ok("fluid.set_particles", {"scene": "st", "positions": b64(pts)})
+    # Disabled: sim.step leaves the particles alone.
+    c.ok("sim.step", {"scene": "st", "steps": 2})
+    _, att = c.ok("fluid.get_particles", {"scene": "st"})
+    s.check(att == pack(pts), "a disabled fluid does not move")
+    c.ok("scene.set", {"scene": "st", "path": "fluid.enabled", "value": True})
+    r, _ = c.ok("sim.step", {"scene": "st", "steps": 10}, timeout=120)
+    s.eq(r.get("frame"), 12, "sim.step answers with the clock")
+    r, att = c.ok("fluid.get_particles", {"scene": "st"})
+    s.eq(r.get("count"), 1000, "count unchanged by stepping")
+    got = unpack(att)
+    s.check(all(math.isfinite(v) for p in got for v in p), "every position finite")
+    s.check(all(-5 <= v <= 5 for p in got for v in p), "every particle inside the bounds")
+    y0 = sum(p[1] for p in pts) / len(pts)
+    y1 = sum(p[1] for p in got) / len(got)
+    s.check(y1 < y0 - 1e-3, "the fluid moved down under gravity", "mean y %g -> %g" % (y0, y1))
+    _, vatt = c.ok("fluid.get_particles", {"scene": "st", "field": "velocities"})
+    vy = sum(v[1] for v in unpack(vatt)) / 1000
+    s.check(vy < 0, "the fluid falls", "mean vy %g" % vy)
+    s.check(all(math.isfinite(v) for p in unpack(vatt) for v in p), "every velocity finite")
+
+    # Drawn: the frame differs from one without the fluid layer, and depth sees it.
+    params = {"scene": "st", "width": 64, "height": 64, "format": "png"}
+    _, with_fluid = c.ok("render", params, timeout=120)
+    layers = ["objects", "volumes", "cloud", "waves"]
+    _, without = c.ok("render", dict(params, layers=layers), timeout=120)
+    s.check(with_fluid is not None and with_fluid[:4] == b"\x89PNG", "render gives a PNG")
+    s.check(with_fluid != without, "the fluid is visible in the render")
+    dparams = {"scene": "st", "width": 64, "height": 64, "format": "f32", "aov": "depth"}
+    _, d1 = c.ok("render", dparams, timeout=120)
+    c.ok("scene.set", {"scene": "st", "path": "fluid.enabled", "value": False})
+    _, d0 = c.ok("render", dparams, timeout=120)
+    f1 = sum(1 for v in struct.unpack("<%df" % (len(d1) // 4), d1) if math.isfinite(v))
+    f0 = sum(1 for v in struct.unpack("<%df" % (len(d0) // 4), d0) if math.isfinite(v))
+    s.check(f1 > f0, "the depth AOV includes the fluid", "%d vs %d finite pixels" % (f1, f0))
+
+    # sim.play steps it too; pausing leaves it consistent.
+    c.ok("scene.set", {"scene": "st", "path": "fluid.enabled", "value": True})
+    c.ok("sim.play", {"scene": "st", "rate": 60})
+    time.sleep(0.5)
+    c.ok("sim.pause", {"scene": "st"})
+    r, att = c.ok("fluid.get_particles", {"scene": "st"})
+    s.eq(r.get("count"), 1000, "count unchanged by sim.play")
+    s.check(all(math.isfinite(v) for p in unpack(att) for v in p), "finite after sim.play")
+
+
+@T
+def bad_inputs(s):
+    c = s.srv.connect()
+    fresh(c, "bad")
+    pts = block(5)
+    c.ok("fluid.set_particles", {"scene": "bad", "positions": b64(pts)})
+    before = c.ok("fluid.get_particles", {"scene": "bad"})[1]
+    doc = c.ok("scene.get", {"scene": "bad"})[0]
+    p = {"scene": "bad"}
+    expect_error(s, c, "fluid.set_particles", dict(p, positions="!!not base64!!"), E_PARAMS,
+                 "positions", "bad base64")
+    expect_error(s, c, "fluid.set_particles",
+                 dict(p, positions=base64.b64encode(bytes(13)).decode()), E_PARAMS, "positions",
+                 "13 bytes")
+    expect_error(s, c, "fluid.set_particles",
+                 dict(p, positions=b64([(0, 0, 0), (float("nan"), 0, 0)])), E_PARAMS,
+                 "positions", "NaN")
+    expect_error(s, c, "fluid.set_particles",
+                 dict(p, positions=b64([(0, 0, 0), (0, 6, 0)])), E_PARAMS, "positions",
+                 "outside the bounds")
+    expect_error(s, c, "fluid.set_particles",
+                 dict(p, positions=b64([(0, 0, 0)]), velocities=b64([(0, 0, 0)] * 2)), E_PARAMS,
+                 "velocities", "velocities of another length")
+    expect_error(s, c, "fluid.set_particles",
+                 dict(p, positions=b64([(0, 0, 0)]), velocities=b64([(0, float("inf"), 0)])),
+                 E_PARAMS, "velocities", "infinite velocity")
+    expect_error(s, c, "fluid.get_particles", dict(p, field="colour"), E_PARAMS, "field",
+                 "unknown field")
+    expect_error(s, c, "scene.set",
+                 {"scene": "bad", "path": "fluid.bounds.max", "value": [5, -6, 5]}, E_PARAMS,
+                 "fluid.bounds.max", "bounds max below min")
+    s.check(c.ok("fluid.get_particles", {"scene": "bad"})[1] == before,
+            "refused inputs left the particles unchanged")
+    s.eq(c.ok("scene.get", {"scene": "bad"})[0], doc, "refused inputs left the document unchanged")
+    c.ok("scene.delete", {"name": "bad"})
+
+
+@T
+def particle_limit(s):
+    d = mock.tempfile.mkdtemp(prefix="volfx-fluid-")
+    path = os.path.join(d, "volfxd.json")
+    with open(path, "w") as f:
+        f.write(json.dumps({"limits": {"particles": 100}}))
+    with mock.Server(s.bin, "--config", path) as srv:
+        c = srv.connect()
+        fresh(c, "lim")
+        c.ok("fluid.set_particles", {"scene": "lim", "positions": b64(block(4))})
+        expect_error(s, c, "fluid.set_particles", {"scene": "lim", "positions": b64(block(5))},
+                     E_LIMIT, "positions", "over limits.particles")
+        s.eq(c.ok("scene.get", {"scene": "lim", "path": "fluid.count"})[0], 64,
+             "the refused set left the particles")
+
+
+@T
+def delete_and_shutdown(s):
+    with mock.Server(s.bin) as srv:
+        c = srv.connect()
+        for name in ("d1", "d2"):
+            fresh(c, name)
+            c.ok("fluid.set_particles", {"scene": name, "positions": b64(block(6))})
+            c.ok("scene.set", {"scene": name, "path": "fluid.enabled", "value": True})
+            c.ok("sim.step", {"scene": name, "steps": 2}, timeout=120)
+        # A step still running when its scene goes away is dropped quietly.
+        c.send(c.request("sim.step", {"scene": "d1", "steps": 3}))
+        c.send(c.request("scene.delete", {"name": "d1"}))
+        c.recv_response(timeout=120)
+        c.recv_response(timeout=120)
+        c.ok("sim.play", {"scene": "d2", "rate": 120})
+        r, _ = c.ok("server.shutdown", {})
+        s.eq(r, {"shutting_down": True}, "server.shutdown")
+        s.eq(srv.wait_exit(30), 0, "volfxd exits 0 after deleting a fluid scene and shutting down")
+
+
+if __name__ == "__main__":
+    sys.exit(suite.main())
