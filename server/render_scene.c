@@ -30,6 +30,10 @@ void render_scene_unref(render_scene_t *s) {
   free(s->objects);
   free(s->waves);
   particles_unref(s->fluid.owner);
+  for (int i = 0; i < s->nvolumes; i++)
+    density_grid_unref(s->volumes[i].grid);
+  free(s->volumes);
+  density_grid_unref(s->cloud.grid);
   free(s);
 }
 
@@ -63,4 +67,35 @@ void particles_unref(particles_t *p) {
   free(p->pos);
   free(p->vel);
   free(p);
+}
+
+density_grid_t *density_grid_new(const uint32_t dims[3]) {
+  if (!dims[0] || !dims[1] || !dims[2])
+    return NULL;
+  density_grid_t *g = calloc(1, sizeof *g);
+  if (!g)
+    return NULL;
+  size_t n = (size_t)dims[0] * dims[1] * dims[2];
+  g->data = calloc(n, sizeof(float));
+  if (!g->data) {
+    free(g);
+    return NULL;
+  }
+  atomic_init(&g->refs, 1);
+  for (int i = 0; i < 3; i++)
+    g->dims[i] = dims[i];
+  return g;
+}
+
+density_grid_t *density_grid_ref(density_grid_t *g) {
+  if (g)
+    atomic_fetch_add_explicit(&g->refs, 1, memory_order_relaxed);
+  return g;
+}
+
+void density_grid_unref(density_grid_t *g) {
+  if (!g || atomic_fetch_sub_explicit(&g->refs, 1, memory_order_acq_rel) != 1)
+    return;
+  free(g->data);
+  free(g);
 }

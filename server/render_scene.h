@@ -92,6 +92,43 @@ particles_t *particles_ref(particles_t *p);
 /* Drops a reference; NULL is fine. */
 void particles_unref(particles_t *p);
 
+/*
+ * A grid of densities on the host (a cloud's density, a volume file's data): immutable once
+ * published, shared by snapshots and jobs, freed with the last reference. 'data' holds
+ * dims[0] × dims[1] × dims[2] non-negative floats, x fastest, then y, then z.
+ */
+typedef struct density_grid {
+  atomic_int refs;
+  uint32_t dims[3];
+  float *data;
+} density_grid_t;
+
+/* A zeroed grid of the given dimensions with one reference; NULL on OOM or a zero side. */
+density_grid_t *density_grid_new(const uint32_t dims[3]);
+density_grid_t *density_grid_ref(density_grid_t *g);
+/* Drops a reference; NULL is fine. */
+void density_grid_unref(density_grid_t *g);
+
+typedef enum { VOLUME_NOISE, VOLUME_GRID } volume_source_t;
+
+/*
+ * A participating medium in an axis-aligned box (SPEC §5.3): extinction σ(P) = density ×
+ * d(P) per world unit, where d is the procedural noise (VOLUME_NOISE) or the grid trilinearly
+ * interpolated over the box (VOLUME_GRID, d = 0 outside). Rays are sampled only between where
+ * they enter the box and min(where they leave it, the opaque depth), 'samples' evenly spaced
+ * samples; single scattering of the light with the given albedo.
+ */
+typedef struct rvolume {
+  volume_source_t source;
+  float min[3], max[3]; /* World-space bounds. */
+  float density;        /* Extinction per world unit where d = 1. */
+  float albedo[3];      /* Single-scattering albedo, linear RGB in [0, 1]. */
+  int samples;          /* Samples per ray inside the box. */
+  density_grid_t *grid; /* VOLUME_GRID: a counted reference; NULL otherwise. */
+  uint32_t seed;        /* VOLUME_NOISE: the noise's seed. */
+  float noise_scale;    /* VOLUME_NOISE: feature size, world units. */
+} rvolume_t;
+
 typedef struct render_scene {
   atomic_int refs;
   rcamera_t camera;
@@ -107,8 +144,11 @@ typedef struct render_scene {
   int nobjects;
   rwave_t *waves; /* Owned by the snapshot (freed with it). */
   int nwaves;
-  rfluid_t fluid; /* count 0: no fluid. */
-  float exposure; /* Stops: pixel = tone_map(linear * 2^exposure). */
+  rfluid_t fluid;     /* count 0: no fluid. */
+  rvolume_t *volumes; /* Owned by the snapshot; their grids are counted references. */
+  int nvolumes;
+  rvolume_t cloud; /* The cloud's density as a VOLUME_GRID volume; grid NULL: no cloud. */
+  float exposure;  /* Stops: pixel = tone_map(linear * 2^exposure). */
   tone_map_t tone_map;
   int transparent_background; /* Background pixels get alpha 0 instead of 1. */
   uint64_t frame;             /* Simulation frame and time at the snapshot. */

@@ -695,6 +695,7 @@ static render_scene_t *snapshot_advanced(const render_scene_t *old, const cJSON 
   memcpy(rs, old, sizeof *rs);
   atomic_init(&rs->refs, 1);
   rs->objects = NULL;
+  rs->volumes = NULL;
   if (compile_waves(doc, rs) != 0) {
     free(rs);
     return NULL;
@@ -711,6 +712,22 @@ static render_scene_t *snapshot_advanced(const render_scene_t *old, const cJSON 
       if (rs->objects[i].mesh)
         mesh_ref(rs->objects[i].mesh);
   }
+  if (old->nvolumes > 0) {
+    rs->volumes = malloc((size_t)old->nvolumes * sizeof *rs->volumes);
+    if (!rs->volumes) {
+      for (int i = 0; i < rs->nobjects; i++)
+        if (rs->objects[i].mesh)
+          mesh_unref(rs->objects[i].mesh);
+      free(rs->objects);
+      free(rs->waves);
+      free(rs);
+      return NULL;
+    }
+    memcpy(rs->volumes, old->volumes, (size_t)old->nvolumes * sizeof *rs->volumes);
+    for (int i = 0; i < rs->nvolumes; i++)
+      density_grid_ref(rs->volumes[i].grid);
+  }
+  density_grid_ref(rs->cloud.grid);
   compile_fluid(doc, particles, rs);
   rs->frame = frame;
   rs->time = time;
