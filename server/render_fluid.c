@@ -1,0 +1,196 @@
+/*
+ * The fluid pass: the particles sorted into a uniform grid each frame (padded per-cell lists
+ * on the device) and ray cast as metaballs by kernels/fluid.cl, depth-tested against the
+ * objects.
+ */
+#include <math.h>
+
+#include "render_internal.h"
+
+/* ---- Fluid --------------------------------------------------------------------------------- */
+
+/* The range of cells [lo, hi] on each axis that the ball of radius 'h' about 'p' may reach. */
+static void fluid_reach(const vfx_fluid_t *fl, const float *p, float h, int lo[3], int hi[3]) {
+  for (int a = 0; a < 3; a++) {
+    double l = floor((p[a] - h - fl->origin[a]) / fl->cell);
+    double u = floor((p[a] + h - fl->origin[a]) / fl->cell);
+    lo[a] = l < 0 ? 0 : l >= fl->dims[a] ? fl->dims[a] - 1 : (int)l;
+    hi[a] = u < 0 ? 0 : u >= fl->dims[a] ? fl->dims[a] - 1 : (int)u;
+  }
+}
+
+/* Whether the ball of radius 'h' about 'p' touches cell (i, j, k), boundary included, with a
+ * margin for the kernel's float rounding (listing one particle too many costs nothing). */
+static int fluid_touches(const vfx_fluid_t *fl, const float *p, double h2, int i, int j, int k) {
+  int c[3] = {i, j, k};
+  double d2 = 0;
+  for (int a = 0; a < 3; a++) {
+    double lo = fl->origin[a] + (double)c[a] * fl->cell, hi = lo + fl->cell;
+    double e = p[a] < lo ? lo - p[a] : p[a] > hi ? p[a] - hi : 0;
+    d2 += e * e;
+  }
+  return d2 <= h2;
+}
+
+/*
+ * Builds the fluid grid of vfx_fluid_t (common.h) in r->host_fcells and r->host_fpos by a
+ * counting sort, and fills 'fl'. Particles with a non-finite coordinate are left out. Returns
+ * the number of cells (0 when no particle is left), or -1 when out of memory.
+ */
+static long fluid_build(renderer_t *r, const rfluid_t *fd, vfx_fluid_t *fl) {
+  float h = fd->h, lo[3] = {INFINITY, INFINITY, INFINITY},
+        hi[3] = {-INFINITY, -INFINITY, -INFINITY};
+  uint32_t used = 0;
+  for (uint32_t i = 0; i < fd->count; i++) {
+    const float *p = fd->positions + 3 * (size_t)i;
+    if (!isfinite(p[0]) || !isfinite(p[1]) || !isfinite(p[2]))
+      continue;
+    used++;
+    for (int a = 0; a < 3; a++) {
+      lo[a] = p[a] < lo[a] ? p[a] : lo[a];
+      hi[a] = p[a] > hi[a] ? p[a] : hi[a];
+    }
+  }
+  if (used == 0)
+    return 0;
+  /* Cells of side h, or larger when the particles spread too far for that many cells: a cell
+   * lists every particle within h of it whatever its size, so any side >= h is correct. */
+  double ext[3], cell = h;
+  for (int a = 0; a < 3; a++)
+    ext[a] = (double)hi[a] - lo[a] + 2.0 * h;
+  while ((ceil(ext[0] / cell) + 1) * (ceil(ext[1] / cell) + 1) * (ceil(ext[2] / cell) + 1) >
+         FLUID_MAX_CELLS)
+    cell *= 1.25;
+  size_t ncell = 1;
+  for (int a = 0; a < 3; a++) {
+    fl->origin[a] = (float)((double)lo[a] - h);
+    fl->dims[a] = (int)ceil(ext[a] / cell) + 1;
+    fl->box_min[a] = fl->origin[a];
+    fl->box_max[a] = (float)(fl->origin[a] + fl->dims[a] * cell);
+    ncell *= (size_t)fl->dims[a];
+  }
+  fl->cell = (float)cell;
+  fl->inv_cell = (float)(1.0 / cell);
+
+  if (grow_staging((void **)&r->host_fcells, &r->host_fcells_cap, 2 * ncell, sizeof(int32_t)))
+    return -1;
+  int32_t *cells = r->host_fcells;
+  memset(cells, 0, 2 * ncell * sizeof(int32_t));
+  double h2 = (double)h * h * 1.0002 + 1e-12;
+  int a[3], b[3];
+  for (int pass = 0; pass < 2; pass++) {
+    if (pass == 1) {
+      /* Starts of the lists, each padded to a multiple of 8; counts restart for the fill. */
+      size_t at = 0;
+      for (size_t c = 0; c < ncell; c++) {
+        int32_t m = cells[2 * c + 1];
+        cells[2 * c] = (int32_t)at;
+        cells[2 * c + 1] = 0;
+        at += (size_t)(m + 7) & ~(size_t)7;
+      }
+      size_t stride = at ? at : 8;
+      if (stride > INT32_MAX / 3 ||
+          grow_staging((void **)&r->host_fpos, &r->host_fpos_cap, 3 * stride, sizeof(float)))
+        return -1;
+      for (size_t i = 0; i < 3 * stride; i++)
+        r->host_fpos[i] = FLUID_PAD;
+      fl->stride = (int)stride;
+    }
+    for (uint32_t i = 0; i < fd->count; i++) {
+      const float *p = fd->positions + 3 * (size_t)i;
+      if (!isfinite(p[0]) || !isfinite(p[1]) || !isfinite(p[2]))
+        continue;
+      fluid_reach(fl, p, h, a, b);
+      for (int k = a[2]; k <= b[2]; k++) {
+        for (int j = a[1]; j <= b[1]; j++) {
+          for (int q = a[0]; q <= b[0]; q++) {
+            if (!fluid_touches(fl, p, h2, q, j, k))
+              continue;
+            size_t c = ((size_t)k * fl->dims[1] + j) * fl->dims[0] + q;
+            if (pass == 1) {
+              size_t at = (size_t)cells[2 * c] + (size_t)cells[2 * c + 1];
+              r->host_fpos[at] = p[0];
+              r->host_fpos[fl->stride + at] = p[1];
+              r->host_fpos[2 * (size_t)fl->stride + at] = p[2];
+            }
+            cells[2 * c + 1]++;
+          }
+        }
+      }
+    }
+  }
+  return (long)ncell;
+}
+
+/*
+ * Runs the fluid pass over the frame the objects pass set up: builds the grid of the scene's
+ * particles, uploads it and draws the metaballs into r->linear and r->depth where they are
+ * nearer than the objects. Sets '*ran' to whether there was a particle to draw. Returns 0 or a
+ * PROTO_E_* code.
+ */
+int render_pass_fluid(renderer_t *r, const render_scene_t *scene, int *ran, char *err,
+                      size_t errlen) {
+  const rfluid_t *fd = &scene->fluid;
+  *ran = 0;
+  if (fd->count == 0 || fd->positions == NULL || !(fd->h > 0) || !isfinite(fd->h) ||
+      !(fd->threshold > 0) || !isfinite(fd->threshold))
+    return 0;
+  vfx_fluid_t fl;
+  memset(&fl, 0, sizeof fl);
+  long ncell = fluid_build(r, fd, &fl);
+  if (ncell < 0) {
+    set_err(err, errlen, "[render] out of memory for the grid of %u particles", fd->count);
+    return PROTO_E_INTERNAL;
+  }
+  if (ncell == 0)
+    return 0;
+  fl.h = fd->h;
+  fl.inv_h = 1.0f / fd->h;
+  fl.threshold = fd->threshold;
+  fl.min_step = fd->h / 2000;
+  fl.tol = fd->h * 1e-4f;
+  double ior = isfinite(fd->ior) && fd->ior > 0 ? fd->ior : 1.33;
+  double f0 = (ior - 1) / (ior + 1);
+  fl.f0 = (float)(f0 * f0);
+  double rough = isfinite(fd->roughness) ? fd->roughness : 0.1;
+  rough = rough < 0.02 ? 0.02 : rough > 1 ? 1 : rough;
+  fl.shininess = (float)(2 / (rough * rough) - 2 + 1);
+  memcpy(fl.color, fd->color, sizeof fl.color);
+
+  if (render_ensure_buffer(r, &r->fluid_cells, &r->cap_fcells, 2 * (size_t)ncell, sizeof(int32_t),
+                           CL_MEM_READ_ONLY, 1, err, errlen) ||
+      render_ensure_buffer(r, &r->fluid_pos, &r->cap_fpos, 3 * (size_t)fl.stride, sizeof(float),
+                           CL_MEM_READ_ONLY, 1, err, errlen))
+    return PROTO_E_DEVICE;
+  cl_kernel k = r->fluid;
+  cl_int cr =
+      clEnqueueWriteBuffer(r->dev.queue, r->fluid_cells, CL_FALSE, 0,
+                           2 * (size_t)ncell * sizeof(int32_t), r->host_fcells, 0, NULL, NULL);
+  if (cr == CL_SUCCESS)
+    cr = clEnqueueWriteBuffer(r->dev.queue, r->fluid_pos, CL_FALSE, 0,
+                              3 * (size_t)fl.stride * sizeof(float), r->host_fpos, 0, NULL, NULL);
+  if (cr == CL_SUCCESS)
+    cr = clSetKernelArg(k, 0, sizeof r->frame, &r->frame);
+  if (cr == CL_SUCCESS)
+    cr = clSetKernelArg(k, 1, sizeof fl, &fl);
+  if (cr == CL_SUCCESS)
+    cr = clSetKernelArg(k, 2, sizeof(cl_mem), &r->fluid_cells);
+  if (cr == CL_SUCCESS)
+    cr = clSetKernelArg(k, 3, sizeof(cl_mem), &r->fluid_pos);
+  if (cr == CL_SUCCESS)
+    cr = clSetKernelArg(k, 4, sizeof(cl_mem), &r->linear);
+  if (cr == CL_SUCCESS)
+    cr = clSetKernelArg(k, 5, sizeof(cl_mem), &r->depth);
+  size_t global[2] = {r->pitch, r->rows};
+  if (cr == CL_SUCCESS)
+    cr = clEnqueueNDRangeKernel(r->dev.queue, k, 2, NULL, global, r->fluid_local, 0, NULL, NULL);
+  if (cr == CL_SUCCESS)
+    cr = clFinish(r->dev.queue);
+  if (cr != CL_SUCCESS) {
+    set_err(err, errlen, "[render] fluid pass failed on %s: %s", r->dev.device_name,
+            cl_dev_strerror(cr));
+    return PROTO_E_DEVICE;
+  }
+  *ran = 1;
+  return 0;
+}

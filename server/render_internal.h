@@ -1,0 +1,146 @@
+/*
+ * What the renderer's passes share: the renderer's state (device, kernels, buffers that live
+ * across frames, host staging) and small helpers. Included only by server/render*.c; the rest
+ * of the server sees render.h.
+ */
+#ifndef VOLFX_RENDER_INTERNAL_H
+#define VOLFX_RENDER_INTERNAL_H
+
+#include <stdarg.h>
+#include <stdio.h>
+#include <stdlib.h>
+#include <string.h>
+#include <time.h>
+
+#include "render.h"
+#include "cl_device.h"
+#include "../kernels/common.h"
+
+/*
+ * Fixed local sizes: PoCL compiles a kernel once per local size, at its first launch. An
+ * objects work-item covers a packet of PACKET pixels in a row, so its work-group covers
+ * 32x8 pixels; a waves or tonemap work-item covers WAVES_PACKET or TONEMAP_PACKET pixels
+ * (common.h), and their work-groups cover the same 32x8. The per-pixel buffers are padded to
+ * whole work-groups of every pass.
+ */
+#define PACKET 8
+#define OBJECTS_LX 4
+#define OBJECTS_LY 8
+#define TONEMAP_LX (PACKET * OBJECTS_LX / TONEMAP_PACKET)
+#define TONEMAP_LY 8
+
+#define MAX_SIDE 16384 /* Largest width or height the renderer accepts, whatever the limits. */
+#define BVH_LEAF 4     /* Triangles per leaf the builder aims for. */
+#define BVH_BINS 16    /* Bins of the SAH split search. */
+#define FLUID_MAX_CELLS (1 << 21) /* The fluid grid's cells grow beyond h to stay under this. */
+
+/* A mesh object as the cached BVH saw it. */
+typedef struct mesh_key {
+  const mesh_t *mesh; /* Holds a reference, so the address cannot be reused while cached. */
+  float position[3], scale[3], rotation[3];
+} mesh_key_t;
+
+struct renderer {
+  cl_dev_t dev;
+  cl_kernel objects, tonemap, waves, waves_march, fluid;
+  size_t objects_local[2], tonemap_local[2], waves_local[2], fluid_local[2];
+  vfx_frame_t frame; /* The current frame's constants, as the objects pass set them up. */
+
+  cl_mem linear, depth, rgba8; /* Per-pixel buffers, for cap_pixels pixels. */
+  size_t cap_pixels;
+  size_t pitch, rows; /* The current frame's size, rounded up to whole objects work-groups. */
+  cl_mem objs;        /* Object records, cap_objs floats. */
+  size_t cap_objs;
+  cl_mem nodes, tris; /* The mesh BVH, cap_nodes and cap_tris records. */
+  size_t cap_nodes, cap_tris;
+  cl_mem wave_recs; /* Wave records, cap_waves floats. */
+  size_t cap_waves;
+  cl_mem wave_lists; /* Per waves work-group, the waves it may meet: cap_lists ints. */
+  size_t cap_lists;
+  cl_mem hbuf; /* The wave_h AOV, cap_h pixels (allocated at the first wave_h frame). */
+  size_t cap_h;
+  cl_mem fluid_cells, fluid_pos; /* The fluid grid: cap_fcells ints and cap_fpos floats. */
+  size_t cap_fcells, cap_fpos;
+
+  /* The BVH on the device holds these mesh objects. Comparing them each frame, rather than the
+   * scene pointer, keeps the BVH across snapshots that changed other things (the camera, a
+   * colour) and cannot be fooled by a freed scene's address coming back. */
+  mesh_key_t *bvh_keys;
+  int bvh_nkeys;
+  int bvh_ntri;
+
+  float *host_objs; /* Staging for the object records. */
+  size_t host_objs_cap;
+  float *host_waves; /* Staging for the wave records. */
+  size_t host_waves_cap;
+  int32_t *host_lists; /* Staging for the wave lists. */
+  size_t host_lists_cap;
+  int32_t *host_fcells; /* Staging for the fluid grid's (start, count) pairs. */
+  size_t host_fcells_cap;
+  float *host_fpos; /* Staging for the fluid grid's padded lists. */
+  size_t host_fpos_cap;
+  unsigned char *scratch; /* Tone-mapped bytes waiting for the PNG encoder. */
+  size_t scratch_cap;
+};
+
+static inline void set_err(char *err, size_t errlen, const char *fmt, ...) {
+  if (err == NULL || errlen == 0)
+    return;
+  va_list ap;
+  va_start(ap, fmt);
+  vsnprintf(err, errlen, fmt, ap);
+  va_end(ap);
+}
+
+static inline double now_ms(void) {
+  struct timespec ts;
+  clock_gettime(CLOCK_MONOTONIC, &ts);
+  return ts.tv_sec * 1e3 + ts.tv_nsec / 1e6;
+}
+
+static inline size_t round_up(size_t n, size_t m) {
+  return (n + m - 1) / m * m;
+}
+
+/* Grows the int32 or float staging array '*p' to 'need' elements. Returns 0, or -1. */
+static inline int grow_staging(void **p, size_t *cap, size_t need, size_t size) {
+  if (need <= *cap)
+    return 0;
+  void *q = realloc(*p, need * size);
+  if (q == NULL)
+    return -1;
+  *p = q;
+  *cap = need;
+  return 0;
+}
+
+/*
+ * (Re)creates 'buf' with room for at least 'need' elements of 'size' bytes; with 'headroom' it
+ * asks for half as much again, so that a slowly growing scene does not reallocate every frame.
+ */
+int render_ensure_buffer(renderer_t *r, cl_mem *buf, size_t *cap, size_t need, size_t size,
+                         cl_mem_flags flags, int headroom, char *err, size_t errlen);
+
+/* The pixels of a row that the padded buffers' pitch is a multiple of. */
+size_t render_row_pixels(const renderer_t *r);
+
+/* The passes, each in its own file. Each returns 0 or a PROTO_E_* code with 'err' set. */
+
+/* render_objects.c: ray casts the objects into r->linear and r->depth and keeps the frame's
+ * constants in r->frame for the passes after it. */
+int render_pass_objects(renderer_t *r, const render_scene_t *scene, const render_params_t *p,
+                        char *err, size_t errlen);
+/* render_objects.c: drops the device BVH and the mesh references it keeps. */
+void render_bvh_forget(renderer_t *r);
+
+/* render_waves.c: the energy waves' glow added to r->linear (WAVES_ADD) or their H stored in
+ * r->hbuf (WAVES_STORE_H); 'samples' > 0 marches instead of the closed form. '*ran' says
+ * whether a kernel ran. */
+int render_pass_waves(renderer_t *r, const render_scene_t *scene, int mode, int samples, int *ran,
+                      char *err, size_t errlen);
+
+/* render_fluid.c: the particles as metaballs, depth-tested against r->depth. */
+int render_pass_fluid(renderer_t *r, const render_scene_t *scene, int *ran, char *err,
+                      size_t errlen);
+
+#endif
