@@ -92,8 +92,7 @@ typedef struct vfx_frame {
  * An energy wave (SPEC §5.1) in WAVE_STRIDE floats, made by the host for one frame's eye S,
  * in double and then rounded, so that the kernel never subtracts large coordinates: w = S - M,
  * the unit axis D, w' = w - (w.D) D (the part of w across the axis), s0 = w.D, the beam length
- * L, R^2, eps^2, the strengths a and b, |w'|^2, a bounding sphere (S minus its centre
- * M + (L/2) D, then its radius R + L/2), the clamp c and 1/c, the linear colour and R.
+ * L, R^2, eps^2, the strengths a and b, |w'|^2, the clamp c and 1/c, the linear colour and R.
  */
 #define WAVE_W 0
 #define WAVE_D 3
@@ -105,12 +104,11 @@ typedef struct vfx_frame {
 #define WAVE_A 13
 #define WAVE_B 14
 #define WAVE_GP 15
-#define WAVE_BOUND 16
-#define WAVE_CLAMP 20
-#define WAVE_INV_CLAMP 21
-#define WAVE_COLOR 22
-#define WAVE_RADIUS 25
-#define WAVE_STRIDE 28
+#define WAVE_CLAMP 16
+#define WAVE_INV_CLAMP 17
+#define WAVE_COLOR 18
+#define WAVE_RADIUS 21
+#define WAVE_STRIDE 24
 
 /* Pixels of a row that a waves work-item shades, one per vector lane: 16 fills AVX-512's
  * registers. The waves pass launches pitch / WAVES_PACKET work-items per row. */
@@ -119,6 +117,8 @@ typedef struct vfx_frame {
 /* Bits of the waves kernels' 'mode'. */
 #define WAVES_ADD 1     /* Add the clamped glow to the linear image. */
 #define WAVES_STORE_H 2 /* Write the summed unclamped H to the f32 buffer. */
+#define WAVES_TONEMAP 4 /* Add the glow and tone-map every pixel into the RGBA8 buffer instead. */
+#define WAVES_EMPTY 8   /* No objects pass ran: every ray is the background's, to infinity. */
 
 /*
  * The fluid pass's constants (SPEC §5.2), passed by value. The host sorts the particles into a

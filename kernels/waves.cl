@@ -28,10 +28,11 @@
  * integrates only those, and skips one whose capsule none of its rays enters.
  */
 #include "common.h"
+#include "tonemap.h"
 
-/* A packet's lanes: WAVES_PACKET (common.h) pixels of a row, one per vector lane, and the
- * pixel centres relative to its first pixel. */
-#if WAVES_PACKET == 16
+/* A packet's lanes: WAVES_PACKET (common.h; 16, which render_waves.c asserts) pixels of a row,
+ * one per vector lane, and the pixel centres relative to its first pixel. The tone map
+ * (tonemap.h) works on the same float16 vectors. */
 typedef float16 wfloat;
 typedef int16 wint;
 #define WAVE_LOAD vload16
@@ -42,16 +43,6 @@ typedef int16 wint;
 #define WAVE_LANES                                                                                 \
   ((wfloat)(0.5f, 1.5f, 2.5f, 3.5f, 4.5f, 5.5f, 6.5f, 7.5f, 8.5f, 9.5f, 10.5f, 11.5f, 12.5f,       \
             13.5f, 14.5f, 15.5f))
-#else
-typedef float8 wfloat;
-typedef int8 wint;
-#define WAVE_LOAD vload8
-#define WAVE_STORE vstore8
-#define as_wint as_int8
-#define as_wfloat as_float8
-#define convert_wfloat convert_float8
-#define WAVE_LANES ((wfloat)(0.5f, 1.5f, 2.5f, 3.5f, 4.5f, 5.5f, 6.5f, 7.5f))
-#endif
 
 /* Below this m^2 a ray counts as parallel to the axis: rho is then constant along it. At
  * m^2 = 1e-24 rho changes by 1e-12 per unit of distance. */
@@ -321,27 +312,34 @@ static inline void wave_add4(__global float *restrict p, float4 r, float4 g, flo
 
 /*
  * Adds the waves to the packet's pixels at buffer offset 'o': H summed into hout (when mode has
- * WAVES_STORE_H) and the clamped glow into the linear RGBA (when mode has WAVES_ADD).
+ * WAVES_STORE_H), the clamped glow into the linear RGBA (WAVES_ADD), or the glow added to the
+ * linear RGBA and the sum tone-mapped into 'rgba8' (WAVES_TONEMAP), every packet, touched or
+ * not, since this replaces the tone-map pass. With WAVES_EMPTY the linear colour is the
+ * background's, which the objects pass did not write.
  */
-static inline void wave_store(__global float *restrict linear, __global float *restrict hout,
+static inline void wave_store(const vfx_frame_t *f, __global float *restrict linear,
+                              __global float *restrict hout, __global uchar *restrict rgba8,
                               int mode, int o, wfloat hsum, wfloat gr, wfloat gg, wfloat gb,
-                              int touched) {
+                              int touched, float scale, int op) {
   if (mode & WAVES_STORE_H)
     WAVE_STORE(hsum, 0, hout + o);
-  if (!(mode & WAVES_ADD) || !touched)
-    return;
   /* The glow is light, so it is added to the colour; alpha becomes at least its strength, so
    * that glow over a transparent background shows. */
   wfloat ga = min(max(max(gr, gg), gb), 1.0f);
-#if WAVES_PACKET == 16
+  if (mode & WAVES_TONEMAP) {
+    wfloat r = f->bg[0], g = f->bg[1], b = f->bg[2], a = f->bg[3];
+    if (!(mode & WAVES_EMPTY))
+      tone_load16(linear + 4 * o, &r, &g, &b, &a);
+    tone_store16(rgba8 + 4 * o, tone_colour(r + gr, scale, op), tone_colour(g + gg, scale, op),
+                 tone_colour(b + gb, scale, op), tone_alpha(max(a, ga)));
+    return;
+  }
+  if (!(mode & WAVES_ADD) || !touched)
+    return;
   wave_add4(linear + 4 * o, gr.lo.lo, gg.lo.lo, gb.lo.lo, ga.lo.lo);
   wave_add4(linear + 4 * o + 16, gr.lo.hi, gg.lo.hi, gb.lo.hi, ga.lo.hi);
   wave_add4(linear + 4 * o + 32, gr.hi.lo, gg.hi.lo, gb.hi.lo, ga.hi.lo);
   wave_add4(linear + 4 * o + 48, gr.hi.hi, gg.hi.hi, gb.hi.hi, ga.hi.hi);
-#else
-  wave_add4(linear + 4 * o, gr.lo, gg.lo, gb.lo, ga.lo);
-  wave_add4(linear + 4 * o + 16, gr.hi, gg.hi, gb.hi, ga.hi);
-#endif
 }
 
 /*
@@ -350,17 +348,20 @@ static inline void wave_store(__global float *restrict linear, __global float *r
  * opaque was hit); 'waves' holds 'nwaves' records of WAVE_STRIDE floats made for this frame's eye,
  * and 'lists', for work-group g (numbered row by row), the number of waves to draw at
  * (nwaves + 1) g and their indices after it. 'mode' is a set of WAVES_* bits; 'hout' receives the
- * summed unclamped H when it asks for it. Each wave adds wave_glow(H) times its colour to the
- * linear RGB: its full colour where H >= c, fading smoothly to nothing as H falls to 0.
+ * summed unclamped H when it asks for it; 'rgba8', 'scale' (2^exposure) and 'op' (TONE_OP_*) serve
+ * WAVES_TONEMAP, and with WAVES_EMPTY 'depth' and 'linear' are not read. Each wave adds
+ * wave_glow(H) times its colour to the linear RGB: its full colour where H >= c, fading smoothly
+ * to nothing as H falls to 0.
  */
 __kernel void waves(vfx_frame_t f, __global const float *restrict waves, int nwaves,
                     __global const int *restrict lists, __global const float *restrict depth,
-                    __global float *restrict linear, __global float *restrict hout, int mode) {
+                    __global float *restrict linear, __global float *restrict hout, int mode,
+                    __global uchar *restrict rgba8, float scale, int op) {
   int x0 = WAVES_PACKET * get_global_id(0), y = get_global_id(1);
   int o = y * f.pitch + x0;
   wfloat dx, dy, dz;
   wave_rays(&f, x0, y, &dx, &dy, &dz);
-  wfloat tmax = WAVE_LOAD(0, depth + o);
+  wfloat tmax = mode & WAVES_EMPTY ? (wfloat)INFINITY : WAVE_LOAD(0, depth + o);
   wfloat hsum = 0.0f, gr = 0.0f, gg = 0.0f, gb = 0.0f;
   int touched = 0;
   __global const int *list =
@@ -378,7 +379,7 @@ __kernel void waves(vfx_frame_t f, __global const float *restrict waves, int nwa
     gb = fma(g, wv[WAVE_COLOR + 2], gb);
     touched = 1;
   }
-  wave_store(linear, hout, mode, o, hsum, gr, gg, gb, touched);
+  wave_store(&f, linear, hout, rgba8, mode, o, hsum, gr, gg, gb, touched, scale, op);
 }
 
 /* The waves kernel with the closed form replaced by a ray march of 'samples' samples per wave
@@ -386,12 +387,12 @@ __kernel void waves(vfx_frame_t f, __global const float *restrict waves, int nwa
 __kernel void waves_march(vfx_frame_t f, __global const float *restrict waves, int nwaves,
                           __global const int *restrict lists, __global const float *restrict depth,
                           __global float *restrict linear, __global float *restrict hout, int mode,
-                          int samples) {
+                          __global uchar *restrict rgba8, float scale, int op, int samples) {
   int x0 = WAVES_PACKET * get_global_id(0), y = get_global_id(1);
   int o = y * f.pitch + x0;
   wfloat dx, dy, dz;
   wave_rays(&f, x0, y, &dx, &dy, &dz);
-  wfloat tmax = WAVE_LOAD(0, depth + o);
+  wfloat tmax = mode & WAVES_EMPTY ? (wfloat)INFINITY : WAVE_LOAD(0, depth + o);
   wfloat hsum = 0.0f, gr = 0.0f, gg = 0.0f, gb = 0.0f;
   int touched = 0;
   __global const int *list =
@@ -409,5 +410,5 @@ __kernel void waves_march(vfx_frame_t f, __global const float *restrict waves, i
     gb = fma(g, wv[WAVE_COLOR + 2], gb);
     touched = 1;
   }
-  wave_store(linear, hout, mode, o, hsum, gr, gg, gb, touched);
+  wave_store(&f, linear, hout, rgba8, mode, o, hsum, gr, gg, gb, touched, scale, op);
 }

@@ -3,8 +3,9 @@
  * (render_objects.c: ray casting and shading into linear colour and depth), "fluid"
  * (render_fluid.c: the particles as metaballs, depth-tested against the objects), "waves"
  * (render_waves.c: the energy waves' closed-form glow, added to the linear image, or their H
- * as the wave_h AOV), "tonemap", "readback" and "encode" (PNG, on the host). Device buffers
- * live across frames and only grow.
+ * as the wave_h AOV), "tonemap", "readback" and "encode" (PNG, on the host). When the waves
+ * pass is the last before the tone map of an 8-bit frame it tone-maps its pixels itself and
+ * there is no "tonemap" pass. Device buffers live across frames and only grow.
  *
  * One thread uses a renderer at a time (the render worker); it starts no threads of its own.
  */
@@ -24,23 +25,28 @@ static void add_pass(render_output_t *out, const char *name, double ms) {
   }
 }
 
+void render_tone_args(const render_scene_t *scene, float *scale, int *op) {
+  switch (scene->tone_map) {
+  case TONE_REINHARD:
+    *op = TONE_OP_REINHARD;
+    break;
+  case TONE_ACES:
+    *op = TONE_OP_ACES;
+    break;
+  default:
+    *op = TONE_OP_NONE;
+    break;
+  }
+  *scale = exp2f(scene->exposure);
+  if (!isfinite(*scale))
+    *scale = scene->exposure > 0 ? 3.4e38f : 0.0f;
+}
+
 /* Runs the tone-map pass from r->linear into r->rgba8, padding included. */
 static int pass_tonemap(renderer_t *r, const render_scene_t *scene, char *err, size_t errlen) {
   cl_int op;
-  cl_float scale = exp2f(scene->exposure);
-  switch (scene->tone_map) {
-  case TONE_REINHARD:
-    op = TONE_OP_REINHARD;
-    break;
-  case TONE_ACES:
-    op = TONE_OP_ACES;
-    break;
-  default:
-    op = TONE_OP_NONE;
-    break;
-  }
-  if (!isfinite(scale))
-    scale = scene->exposure > 0 ? 3.4e38f : 0.0f;
+  cl_float scale;
+  render_tone_args(scene, &scale, &op);
   cl_kernel k = r->tonemap;
   cl_int cr = clSetKernelArg(k, 0, sizeof(cl_mem), &r->linear);
   if (cr == CL_SUCCESS)
@@ -123,13 +129,20 @@ int renderer_render(renderer_t *r, const render_scene_t *scene, const render_par
     return 0;
   }
 
+  /* An 8-bit frame whose last pass is the waves pass is tone-mapped by that pass, which saves
+   * a launch and writing and reading the linear image; when no pass runs between the objects and
+   * the waves, an objects pass with nothing to draw need not run either. */
+  int fluid = (p->layers & LAYER_FLUID) && scene->fluid.count > 0;
+  int fused = waves && beauty && p->format != PROTO_FMT_RGBAF32;
+  r->objects_optional = fused && !fluid;
+
   double t = now_ms();
   int rc = render_pass_objects(r, scene, p, err, errlen);
   if (rc != 0)
     return rc;
   add_pass(out, "objects", now_ms() - t);
 
-  if ((p->layers & LAYER_FLUID) && scene->fluid.count > 0) {
+  if (fluid) {
     t = now_ms();
     int ran;
     if ((rc = render_pass_fluid(r, scene, &ran, err, errlen)) != 0)
@@ -141,11 +154,14 @@ int renderer_render(renderer_t *r, const render_scene_t *scene, const render_par
   if (waves) {
     t = now_ms();
     int ran;
-    int mode = p->aov == AOV_WAVE_H ? WAVES_STORE_H : WAVES_ADD;
+    int mode = p->aov == AOV_WAVE_H ? WAVES_STORE_H : fused ? WAVES_TONEMAP : WAVES_ADD;
+    if (r->objects_skipped)
+      mode |= WAVES_EMPTY;
     if ((rc = render_pass_waves(r, scene, mode, p->march_samples, &ran, err, errlen)) != 0)
       return rc;
-    if (ran)
-      add_pass(out, "waves", now_ms() - t);
+    /* Without a wave to draw, the fused kernel was only the tone map. */
+    if (ran || fused)
+      add_pass(out, ran ? "waves" : "tonemap", now_ms() - t);
   }
 
   size_t nbytes = (p->format == PROTO_FMT_RGBAF32 ? 16 : 4) * npix;
@@ -157,7 +173,7 @@ int renderer_render(renderer_t *r, const render_scene_t *scene, const render_par
       return PROTO_E_INTERNAL;
     }
   }
-  if (beauty && p->format != PROTO_FMT_RGBAF32) {
+  if (beauty && p->format != PROTO_FMT_RGBAF32 && !fused) {
     t = now_ms();
     if ((rc = pass_tonemap(r, scene, err, errlen)) != 0)
       goto fail;

@@ -44,7 +44,9 @@ struct renderer {
   cl_dev_t dev;
   cl_kernel objects, tonemap, waves, waves_march, fluid;
   size_t objects_local[2], tonemap_local[2], waves_local[2], fluid_local[2];
-  vfx_frame_t frame; /* The current frame's constants, as the objects pass set them up. */
+  vfx_frame_t frame;    /* The current frame's constants, as the objects pass set them up. */
+  int objects_optional; /* Set by render.c: this frame's objects kernel need not run if empty. */
+  int objects_skipped;  /* It did not: r->linear and r->depth hold nothing of this frame. */
 
   cl_mem linear, depth, rgba8; /* Per-pixel buffers, for cap_pixels pixels. */
   size_t cap_pixels;
@@ -127,15 +129,21 @@ size_t render_row_pixels(const renderer_t *r);
 /* The passes, each in its own file. Each returns 0 or a PROTO_E_* code with 'err' set. */
 
 /* render_objects.c: ray casts the objects into r->linear and r->depth and keeps the frame's
- * constants in r->frame for the passes after it. */
+ * constants in r->frame for the passes after it. With r->objects_optional set and no object to
+ * draw, it launches nothing and sets r->objects_skipped. */
 int render_pass_objects(renderer_t *r, const render_scene_t *scene, const render_params_t *p,
                         char *err, size_t errlen);
 /* render_objects.c: drops the device BVH and the mesh references it keeps. */
 void render_bvh_forget(renderer_t *r);
 
-/* render_waves.c: the energy waves' glow added to r->linear (WAVES_ADD) or their H stored in
- * r->hbuf (WAVES_STORE_H); 'samples' > 0 marches instead of the closed form. '*ran' says
- * whether a kernel ran. */
+/* render.c: the tone-map pass's arguments for 'scene': 2^exposure and the TONE_OP_*. */
+void render_tone_args(const render_scene_t *scene, float *scale, int *op);
+
+/* render_waves.c: the energy waves' glow added to r->linear (WAVES_ADD), or added and tone-mapped
+ * into r->rgba8 (WAVES_TONEMAP, which replaces the tone-map pass and runs even without a wave to
+ * draw), or their H stored in r->hbuf (WAVES_STORE_H); WAVES_EMPTY when the objects pass was
+ * skipped. 'samples' > 0 marches instead of the closed form. '*ran' says whether there was a
+ * wave to draw. */
 int render_pass_waves(renderer_t *r, const render_scene_t *scene, int mode, int samples, int *ran,
                       char *err, size_t errlen);
 

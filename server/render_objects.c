@@ -626,6 +626,11 @@ int render_pass_objects(renderer_t *r, const render_scene_t *scene, const render
   }
 
   r->frame = f;
+  /* With nothing to draw, the image is the background at infinite depth: a pass after this one
+   * that knows it (r->objects_optional) saves the launch and the writing and reading of it. */
+  r->objects_skipped = r->objects_optional && f.nsph == 0 && f.nconv == 0 && f.ntri == 0;
+  if (r->objects_skipped)
+    return 0;
   cl_int cr = clEnqueueWriteBuffer(r->dev.queue, r->objs, CL_FALSE, 0, nobj * sizeof(float),
                                    r->host_objs, 0, NULL, NULL);
   cl_kernel k = r->objects;

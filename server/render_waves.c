@@ -7,6 +7,8 @@
 
 #include "render_internal.h"
 
+_Static_assert(WAVES_PACKET == 16, "kernels/waves.cl shades packets of 16 pixels in float16 lanes");
+
 /*
  * Packs the usable waves of 'scene' into r->host_waves as records for the eye 'eye' (WAVE_* of
  * common.h), working in double so that the offsets from the eye are exact to float rounding.
@@ -51,7 +53,6 @@ static int pack_waves(renderer_t *r, const render_scene_t *scene, const float ey
       rec[WAVE_W + k] = (float)w[k];
       rec[WAVE_D + k] = (float)d[k];
       rec[WAVE_WP + k] = (float)wp;
-      rec[WAVE_BOUND + k] = (float)(w[k] - 0.5 * bl * d[k]);
       rec[WAVE_COLOR + k] = wv->color[k];
     }
     rec[WAVE_S0] = (float)s0;
@@ -61,8 +62,6 @@ static int pack_waves(renderer_t *r, const render_scene_t *scene, const float ey
     rec[WAVE_A] = wv->a;
     rec[WAVE_B] = wv->b;
     rec[WAVE_GP] = (float)gp;
-    /* Rounded up, so that a test in float never culls a ray that enters the wave. */
-    rec[WAVE_BOUND + 3] = (float)((wv->radius + 0.5 * bl) * 1.001 + 1e-6);
     rec[WAVE_RADIUS] = wv->radius;
     rec[WAVE_CLAMP] = wv->clamp;
     rec[WAVE_INV_CLAMP] = (float)(1.0 / wv->clamp);
@@ -161,7 +160,7 @@ int render_pass_waves(renderer_t *r, const render_scene_t *scene, int mode, int 
     return PROTO_E_INTERNAL;
   }
   size_t npix = r->pitch * r->rows;
-  if (n == 0 && !(mode & WAVES_STORE_H))
+  if (n == 0 && !(mode & (WAVES_STORE_H | WAVES_TONEMAP)))
     return 0;
   if (render_ensure_buffer(r, &r->wave_recs, &r->cap_waves, (size_t)(n ? n : 1) * WAVE_STRIDE,
                            sizeof(float), CL_MEM_READ_ONLY, 1, err, errlen))
@@ -180,7 +179,9 @@ int render_pass_waves(renderer_t *r, const render_scene_t *scene, int mode, int 
   /* Kernels take a buffer argument even when only one mode uses it. */
   cl_mem hout = r->hbuf ? r->hbuf : r->depth;
   cl_kernel k = samples > 0 ? r->waves_march : r->waves;
-  cl_int nw = n, md = mode, ns = samples;
+  cl_int nw = n, md = mode, ns = samples, op;
+  cl_float scale;
+  render_tone_args(scene, &scale, &op);
   cl_int cr = CL_SUCCESS;
   if (n > 0)
     cr =
@@ -205,8 +206,14 @@ int render_pass_waves(renderer_t *r, const render_scene_t *scene, int mode, int 
     cr = clSetKernelArg(k, 6, sizeof(cl_mem), &hout);
   if (cr == CL_SUCCESS)
     cr = clSetKernelArg(k, 7, sizeof md, &md);
+  if (cr == CL_SUCCESS)
+    cr = clSetKernelArg(k, 8, sizeof(cl_mem), &r->rgba8);
+  if (cr == CL_SUCCESS)
+    cr = clSetKernelArg(k, 9, sizeof scale, &scale);
+  if (cr == CL_SUCCESS)
+    cr = clSetKernelArg(k, 10, sizeof op, &op);
   if (cr == CL_SUCCESS && samples > 0)
-    cr = clSetKernelArg(k, 8, sizeof ns, &ns);
+    cr = clSetKernelArg(k, 11, sizeof ns, &ns);
   size_t global[2] = {r->pitch / WAVES_PACKET, r->rows};
   if (cr == CL_SUCCESS)
     cr = clEnqueueNDRangeKernel(r->dev.queue, k, 2, NULL, global, r->waves_local, 0, NULL, NULL);

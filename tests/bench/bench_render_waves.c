@@ -100,8 +100,13 @@ static void spread_sets(rwave_t *w, int n) {
   }
 }
 
+/* The passes a render-only frame may report, in the order the renderer runs them. */
+static const char *const pass_names[] = {"objects", "waves", "tonemap", "readback"};
+#define NPASS (int)(sizeof pass_names / sizeof pass_names[0])
+
 typedef struct timing {
-  double total, objects, waves; /* Medians, ms: every pass but encoding; two of them alone. */
+  double total;       /* Median ms of every pass but encoding. */
+  double pass[NPASS]; /* Median ms of each of pass_names (0 where a frame has no such pass). */
 } timing_t;
 
 static double pass_ms(const render_output_t *out, const char *name) {
@@ -115,7 +120,7 @@ static double pass_ms(const render_output_t *out, const char *name) {
 /* Renders 's' 'runs' times (after one untimed frame) and takes the medians. */
 static int time_frames(renderer_t *r, const render_scene_t *s, const render_params_t *p, int runs,
                        timing_t *t) {
-  double tot[MAX_RUNS], obj[MAX_RUNS], wav[MAX_RUNS];
+  double tot[MAX_RUNS], pass[NPASS][MAX_RUNS];
   char err[1024];
   for (int i = -1; i < runs; i++) {
     render_output_t out;
@@ -126,15 +131,15 @@ static int time_frames(renderer_t *r, const render_scene_t *s, const render_para
     free(out.bytes);
     if (i < 0)
       continue;
-    obj[i] = pass_ms(&out, "objects");
-    wav[i] = pass_ms(&out, "waves");
+    for (int k = 0; k < NPASS; k++)
+      pass[k][i] = pass_ms(&out, pass_names[k]);
     tot[i] = 0;
     for (int k = 0; k < out.npasses; k++)
       tot[i] += strcmp(out.passes[k].name, "encode") ? out.passes[k].ms : 0;
   }
   t->total = median(tot, runs);
-  t->objects = median(obj, runs);
-  t->waves = median(wav, runs);
+  for (int k = 0; k < NPASS; k++)
+    t->pass[k] = median(pass[k], runs);
   return 0;
 }
 
@@ -385,8 +390,24 @@ int main(int argc, char **argv) {
     for (int j = 0; j < 2; j++) {
       printf("| %d | %u² | %.0f | %.0f (%.2f) | %.1fx | %.2f | %.0f (%.2f) | %.1fx |\n",
              set_counts[i], sides[j], thesis_fps[i][j], 1000 / tw[i][j].total, tw[i][j].total,
-             1000 / tw[i][j].total / thesis_fps[i][j], tw[i][j].waves, 1000 / to[i][j].total,
+             1000 / tw[i][j].total / thesis_fps[i][j], tw[i][j].pass[1], 1000 / to[i][j].total,
              to[i][j].total, 1000 / to[i][j].total / thesis_fps[i][j]);
+    }
+  }
+  printf("\nWhere a frame's time goes, median ms of each pass (waves only / with objects; 0: "
+         "no such pass):\n\n| sets | size |");
+  for (int k = 0; k < NPASS; k++)
+    printf(" %s |", pass_names[k]);
+  printf("\n| ---: | ---: |");
+  for (int k = 0; k < NPASS; k++)
+    printf(" ---: |");
+  printf("\n");
+  for (int i = 0; i < 3; i++) {
+    for (int j = 0; j < 2; j++) {
+      printf("| %d | %u² |", set_counts[i], sides[j]);
+      for (int k = 0; k < NPASS; k++)
+        printf(" %.2f / %.2f |", tw[i][j].pass[k], to[i][j].pass[k]);
+      printf("\n");
     }
   }
   printf("\n§4.3, 512², 10 sets, waves pass only (H as f32):\n\n");
