@@ -11,25 +11,48 @@
 #include "common.h"
 
 /*
- * The sRGB encoding of 'x' in [0, 1]. Above the linear toe, 1.055 x^(1/2.4) - 0.055 is
- * replaced by a least-squares fit in x^(1/2), x^(1/4), x^(1/8) and x over [0.0031308, 1]; its
- * largest error is 7e-5, under 2% of an 8-bit step. Square roots vectorise where pow() does
- * not.
+ * 1 / sqrt(x) for finite x > 0 and a / b for finite a and b >= 0.14, through the CPU's
+ * reciprocal square-root and reciprocal estimates with a Newton step (vrsqrt14ps, vrcp14ps)
+ * rather than vsqrtps and vdivps, which share one slow unit. The pragma is kept to these
+ * helpers, whose callers keep their arguments in range.
  */
-static inline float16 tone_srgb(float16 x) {
-  float16 s2 = sqrt(x), s4 = sqrt(s2), s8 = sqrt(s4);
-  float16 fit =
-      0.65468921f * s2 + 0.68884282f * s4 - 0.31928467f * s8 - 0.020600825f * x - 0.0037168936f;
-  return select(fit, 12.92f * x, x <= 0.0031308f);
+static inline float16 tone_rsqrt(float16 x) {
+#pragma float_control(precise, off)
+  return 1.0f / sqrt(x);
 }
 
-/* Applies the operator 'op' (TONE_OP_*) to exposed linear values; the results are in [0, 1]. */
+static inline float16 tone_div(float16 a, float16 b) {
+#pragma float_control(precise, off)
+  return a / b;
+}
+
+/*
+ * The sRGB encoding of 'x' in [0, 1]. Above the linear toe, 1.055 x^(1/2.4) - 0.055 is a
+ * polynomial of degree 5 in s = x^(1/4) (Chebyshev interpolation over [0.0031308, 1]), within
+ * 1e-5 of it, under 0.3% of an 8-bit step; s is two reciprocal square roots. pow() would not
+ * vectorise, and this takes a third of the time of the square roots it replaced.
+ */
+static inline float16 tone_srgb(float16 x) {
+  float16 s = tone_rsqrt(tone_rsqrt(max(x, 0.0031308f)));
+  float16 p = fma(s, -0.0627589896f, 0.272752255f);
+  p = fma(p, s, -0.557555676f);
+  p = fma(p, s, 1.24421394f);
+  p = fma(p, s, 0.164974004f);
+  p = fma(p, s, -0.0616297051f);
+  return select(p, 12.92f * x, x <= 0.0031308f);
+}
+
+/*
+ * Applies the operator 'op' (TONE_OP_*) to exposed linear values; the results are in [0, 1].
+ * Values are first clamped to 1e18, where every operator gives 1 already, so that nothing
+ * overflows and tone_div never sees an infinity.
+ */
 static inline float16 tone_op(float16 x, int op) {
-  x = max(x, 0.0f);
+  x = clamp(x, 0.0f, 1e18f);
   if (op == TONE_OP_REINHARD)
-    x = x / (1.0f + x);
+    x = tone_div(x, 1.0f + x);
   else if (op == TONE_OP_ACES) /* Narkowicz's fit of the ACES filmic curve, as it is. */
-    x = (x * (2.51f * x + 0.03f)) / (x * (2.43f * x + 0.59f) + 0.14f);
+    x = tone_div(x * (2.51f * x + 0.03f), x * (2.43f * x + 0.59f) + 0.14f);
   return min(x, 1.0f);
 }
 

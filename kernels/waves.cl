@@ -68,8 +68,9 @@ static inline wfloat wave_div(wfloat a, wfloat b) {
 /*
  * log(u) for finite u >= 1, without the builtin log, whose extended-precision reduction and
  * division took a third of the pass (this one takes a tenth): u = 2^e m with m in [sqrt(1/2),
- * sqrt(2)), and log(m) = f - f^2 / 2 + f^3 P(f), f = m - 1, with Cephes' degree-8 P (logf), within
- * about 1e-7 relative. For u in [1, sqrt(2)) f is u - 1 exactly, so log(u) keeps its digits near 1.
+ * sqrt(2)), and log(m) = f - f^2 / 2 + f^3 P(f), f = m - 1, with P of degree 5 (Chebyshev
+ * interpolation of (log(1 + f) - f + f^2 / 2) / f^3), within 1e-6 relative. For u in [1,
+ * sqrt(2)) f is u - 1 exactly, so log(u) keeps its digits near 1.
  */
 static inline wfloat wave_log(wfloat u) {
   wint bits = as_wint(u);
@@ -79,17 +80,19 @@ static inline wfloat wave_log(wfloat u) {
   m = select(m, 0.5f * m, big);
   e -= big; /* big is -1 where true. */
   wfloat f = m - 1.0f, z = f * f;
-  wfloat y = fma(f, 7.0376836292e-2f, -1.1514610310e-1f);
-  y = fma(y, f, 1.1676998740e-1f);
-  y = fma(y, f, -1.2420140846e-1f);
-  y = fma(y, f, 1.4249322787e-1f);
-  y = fma(y, f, -1.6668057665e-1f);
-  y = fma(y, f, 2.0000714765e-1f);
-  y = fma(y, f, -2.4999993993e-1f);
-  y = fma(y, f, 3.3333331174e-1f);
+  wfloat y = fma(f, -0.104905265f, 0.158193884f);
+  y = fma(y, f, -0.170016582f);
+  y = fma(y, f, 0.199474455f);
+  y = fma(y, f, -0.249918395f);
+  y = fma(y, f, 0.333336239f);
   wfloat fe = convert_wfloat(e);
   y = fma(y * f, z, fma(fe, -2.12194440e-4f, -0.5f * z));
   return fma(fe, 0.693359375f, f + y);
+}
+
+/* 1 / x for finite x >= 1, to within about 2^-14 relative (vrcp14ps alone). */
+static inline wfloat wave_recip_est(wfloat x) {
+  return native_recip(x);
 }
 
 /* sqrt(x) for finite x >= 0, by wave_rsqrt; 0 stays 0. */
@@ -123,8 +126,8 @@ static inline void wave_rays(const vfx_frame_t *f, int x0, int y, wfloat *dx, wf
  *     delta = g(q) g(p) - 1 = q p + q S_p + p S_q + (q^2 + p^2 + q^2 p^2) / (S_q S_p + 1).
  *
  * Every term is non-negative, so neither form loses digits, near zero or far from it. log1p is
- * taken as log(u) * delta / (u - 1) with u = 1 + delta, the classic exact correction, which
- * also yields the quotient by m without dividing a small log by a small m.
+ * taken as log(u) + (delta - (u - 1)) / u with u = 1 + delta rounded, the classic correction,
+ * and divided by m as a product with 1 / m, which keeps its relative accuracy however small m is.
  */
 static inline wfloat wave_asinh_span(wfloat xa, wfloat xb, wfloat dxm, wfloat m, wfloat inv_m) {
   wfloat p = min(fabs(xa), fabs(xb)), q = max(fabs(xa), fabs(xb));
@@ -137,11 +140,12 @@ static inline wfloat wave_asinh_span(wfloat xa, wfloat xb, wfloat dxm, wfloat m,
   wfloat den = select(spq, ssum * (p + sp), same);
   /* z is delta / m for the same-sign form (dxm carries the 1 / m) and delta otherwise. */
   wfloat z = wave_div(num, den);
-  wfloat delta = select(z, z * m, same), dm = select(z * inv_m, z, same);
+  wfloat delta = select(z, z * m, same);
+  /* log1p(delta) = log(u) - ((u - 1) - delta) / u for u = 1 + delta rounded: the correction is
+   * under an ulp of u, so the reciprocal estimate is ample for it. */
   wfloat u = 1.0f + delta;
-  wfloat l = select(wave_div(wave_log(u), select(u - 1.0f, (wfloat)1.0f, u == 1.0f)), (wfloat)1.0f,
-                    u == 1.0f);
-  return l * dm;
+  wfloat l = fma((delta - (u - 1.0f)), wave_recip_est(u), wave_log(u));
+  return l * inv_m;
 }
 
 /*
