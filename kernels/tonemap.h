@@ -84,8 +84,8 @@ static inline void tone_store16(__global uchar *restrict out, int16 r, int16 g, 
 }
 
 /* Splits 16 RGBA pixels at 'p' (64 floats) into one float16 per channel. */
-static inline void tone_load16(__global const float *restrict p, float16 *r, float16 *g,
-                               float16 *b, float16 *a) {
+static inline void tone_load16(__global const float *restrict p, float16 *r, float16 *g, float16 *b,
+                               float16 *a) {
   float16 v0 = vload16(0, p), v1 = vload16(1, p), v2 = vload16(2, p), v3 = vload16(3, p);
   *r = (float16)(v0.s048c, v1.s048c, v2.s048c, v3.s048c);
   *g = (float16)(v0.s159d, v1.s159d, v2.s159d, v3.s159d);

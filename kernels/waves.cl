@@ -135,8 +135,8 @@ static inline wfloat wave_asinh_span(wfloat xa, wfloat xb, wfloat dxm, wfloat m,
   wfloat sp = p2 * wave_rsqrt(p2), sq = q2 * wave_rsqrt(q2);
   wint same = (xa >= 0.0f) | (xb <= 0.0f);
   wfloat ssum = sq + sp, spq = fma(sq, sp, 1.0f);
-  wfloat num = select(fma(q * p + q * sp + p * sq, spq, fma(q * q, fma(p, p, 1.0f), p * p)),
-                      dxm * (ssum + q + p), same);
+  wfloat num =
+      select(fma(q * p + q * sp + p * sq, spq, fma(q * q, p2, p * p)), dxm * (ssum + q + p), same);
   wfloat den = select(spq, ssum * (p + sp), same);
   /* z is delta / m for the same-sign form (dxm carries the 1 / m) and delta otherwise. */
   wfloat z = wave_div(num, den);
@@ -331,6 +331,15 @@ static inline void wave_store(const vfx_frame_t *f, __global float *restrict lin
    * that glow over a transparent background shows. */
   wfloat ga = min(max(max(gr, gg), gb), 1.0f);
   if (mode & WAVES_TONEMAP) {
+    if ((mode & WAVES_EMPTY) && !touched) {
+      /* The background alone: its four channels through one tone map, for the same bytes. */
+      int16 c = tone_colour((float16)(f->bg[0], f->bg[1], f->bg[2], 0.0f, 0.0f, 0.0f, 0.0f, 0.0f,
+                                      0.0f, 0.0f, 0.0f, 0.0f, 0.0f, 0.0f, 0.0f, 0.0f),
+                            scale, op);
+      tone_store16(rgba8 + 4 * o, (int16)c.s0, (int16)c.s1, (int16)c.s2,
+                   tone_alpha((float16)f->bg[3]));
+      return;
+    }
     wfloat r = f->bg[0], g = f->bg[1], b = f->bg[2], a = f->bg[3];
     if (!(mode & WAVES_EMPTY))
       tone_load16(linear + 4 * o, &r, &g, &b, &a);

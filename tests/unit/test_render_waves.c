@@ -6,7 +6,8 @@
  * the quadratics the kernel solves. The renderer's wave_h AOV must agree within 1e-4 relative
  * for random waves and cameras and for each degenerate case; an opaque box must end the
  * integral at its depth; the beauty image must gain exactly smoothstep(min(H, c) / c) times the
- * colour.
+ * colour; an 8-bit frame, which the waves pass tone-maps itself, must be the tone map of that
+ * image.
  * Scenes are built as render_scene_t structs. Exits non-zero on any failure.
  */
 #include <math.h>
@@ -637,6 +638,130 @@ done:
   free(base), free(lit), free(both), free(h[0]), free(h[1]);
 }
 
+/* The 8-bit value of linear 'x' under 'op' and the exact sRGB curve, in double. */
+static int ref_byte(double x, tone_map_t op) {
+  x = fmax(x, 0);
+  if (op == TONE_REINHARD)
+    x = x / (1 + x);
+  else if (op == TONE_ACES)
+    x = x * (2.51 * x + 0.03) / (x * (2.43 * x + 0.59) + 0.14);
+  x = fmin(x, 1);
+  x = x <= 0.0031308 ? 12.92 * x : 1.055 * pow(x, 1 / 2.4) - 0.055;
+  return (int)floor(x * 255 + 0.5);
+}
+
+/* Renders an 8-bit frame of 's' with 'layers'; the bytes (NULL, reported, on failure) and in
+ * 'names' the passes it reported, comma-separated. */
+static unsigned char *render_rgba8(const render_scene_t *s, int w, int h, unsigned layers,
+                                   char *names, size_t len) {
+  render_params_t p = {.width = (uint32_t)w,
+                       .height = (uint32_t)h,
+                       .format = PROTO_FMT_RGBA8,
+                       .layers = layers,
+                       .png_level = -1};
+  render_output_t out;
+  char err[1024];
+  int rc = renderer_render(R, s, &p, &out, err, sizeof err);
+  CHECK(rc == 0, "render failed: %d %s", rc, err);
+  names[0] = '\0';
+  for (int i = 0; rc == 0 && i < out.npasses; i++)
+    snprintf(names + strlen(names), len - strlen(names), "%s%s", i ? "," : "", out.passes[i].name);
+  return rc == 0 ? out.bytes : NULL;
+}
+
+/*
+ * An 8-bit frame with waves is tone-mapped by the waves pass itself (no "tonemap" pass), and
+ * without objects to draw the objects kernel does not run; the bytes must still be the tone
+ * map of the linear frame (rgbaf32, which keeps the separate passes) for every operator, with
+ * and without objects, over an opaque and a transparent background, on a frame whose width
+ * leaves padding. A frame whose waves are all unusable is exactly the background of the
+ * separate tone-map pass.
+ */
+static void test_fused_tonemap(void) {
+  enum { FW = 75, FH = 41 };
+  rwave_t w[2] = {{.center = {0, 0, 0},
+                   .direction = {1, 0, 0},
+                   .a = 1,
+                   .b = 0.5f,
+                   .length = 2,
+                   .radius = 2,
+                   .softening = 0.1f,
+                   .clamp = 6,
+                   .color = {1, 0.5f, 0.25f}},
+                  {.center = {0.5f, 0.5f, 0},
+                   .direction = {0, 1, 0},
+                   .a = 0.5f,
+                   .b = 0.5f,
+                   .length = 1,
+                   .radius = 1.5f,
+                   .softening = 0.3f,
+                   .clamp = 2,
+                   .color = {0.2f, 0.4f, 1}}};
+  rcamera_t c = {.eye = {1, 0.5f, 6},
+                 .target = {1, 0.3f, 0},
+                 .up = {0, 1, 0},
+                 .fov_y = 50,
+                 .near_ = 0.01f,
+                 .far_ = 100};
+  robject_t ball = {.shape = SHAPE_SPHERE,
+                    .position = {0.3f, 0.2f, -0.5f},
+                    .scale = {1.5f, 1.5f, 1.5f},
+                    .color = {0.8f, 0.7f, 0.6f}};
+  tone_map_t ops[3] = {TONE_NONE, TONE_REINHARD, TONE_ACES};
+  float exposures[3] = {-0.5f, 0.7f, 0};
+  char names[256];
+  for (int k = 0; k < 3; k++) {
+    for (int objs = 0; objs < 2; objs++) {
+      render_scene_t s = wave_scene(w, 2, c);
+      s.objects = objs ? &ball : NULL;
+      s.nobjects = objs;
+      s.tone_map = ops[k];
+      s.exposure = exposures[k];
+      s.transparent_background = k == 1;
+      float *lin = render(&s, FW, FH, AOV_BEAUTY, PROTO_FMT_RGBAF32, LAYER_ALL);
+      unsigned char *px = render_rgba8(&s, FW, FH, LAYER_ALL, names, sizeof names);
+      CHECK(px == NULL || strcmp(names, "objects,waves,readback") == 0,
+            "8-bit frame with waves has passes %s", names);
+      if (lin && px) {
+        int off = 0, worst = 0, glowing = 0;
+        double scale = pow(2, s.exposure);
+        for (int i = 0; i < FW * FH * 4; i++) {
+          int want = i % 4 == 3 ? (int)floor(fmin(fmax(lin[i], 0), 1) * 255 + 0.5)
+                                : ref_byte(lin[i] * scale, s.tone_map);
+          int d = abs(want - px[i]);
+          off += d != 0;
+          worst = d > worst ? d : worst;
+          glowing += i % 4 == 3 && px[i] > 0 && px[i] < 255;
+        }
+        CHECK(worst <= 1 && off < FW * FH * 4 / 100,
+              "tone map %d, objects %d: %d bytes off the linear frame's, worst by %d", k, objs, off,
+              worst);
+        CHECK(k != 1 || glowing > 0, "glow over a transparent background raises alpha");
+      }
+      free(lin);
+      free(px);
+    }
+  }
+
+  /* Unusable waves (the kernel is given none): the fused pass is only the tone map. */
+  rwave_t bad = w[0];
+  bad.radius = 0;
+  render_scene_t s = wave_scene(&bad, 1, c);
+  s.tone_map = TONE_ACES;
+  s.exposure = 0.3f;
+  char names_bg[256];
+  unsigned char *fused = render_rgba8(&s, FW, FH, LAYER_ALL, names, sizeof names);
+  unsigned char *plain = render_rgba8(&s, FW, FH, LAYER_OBJECTS, names_bg, sizeof names_bg);
+  CHECK(fused == NULL || strcmp(names, "objects,tonemap,readback") == 0,
+        "frame without usable waves has passes %s", names);
+  CHECK(plain == NULL || strcmp(names_bg, "objects,tonemap,readback") == 0,
+        "frame without waves has passes %s", names_bg);
+  CHECK(fused && plain && memcmp(fused, plain, 4 * FW * FH) == 0,
+        "background tone-mapped in the waves pass differs from the tone-map pass");
+  free(fused);
+  free(plain);
+}
+
 /* The ray march of the bench converges to the closed form. */
 static void test_march(void) {
   rwave_t w = {.center = {0, 0, 0},
@@ -691,6 +816,7 @@ int main(void) {
   test_degenerate();
   test_occlusion();
   test_compositing();
+  test_fused_tonemap();
   test_march();
   renderer_destroy(R);
   printf("%d checks, %d failed\n", checks, failures);
