@@ -1,9 +1,11 @@
 /*
  * Frame subscriptions (frames.subscribe / frames.unsubscribe) and the delivery of their
- * frames. Each subscription owns a timer; each tick renders one frame unless the previous one
- * is still rendering. A finished frame is written at once when the socket is idle; otherwise
- * it waits, replacing any older waiting frame, until the connection drains. Nothing else is
- * buffered, so a client that never reads costs at most one frame per subscription.
+ * frames. Each subscription owns a timer; each tick renders one frame unless two are still in
+ * flight: a PNG frame leaves the render worker for the encoder thread, so a second frame lets
+ * the worker render it while the first is encoded. A finished frame is written at once when the
+ * socket is idle; otherwise it waits, replacing any older waiting frame, until the connection
+ * drains. Nothing else is buffered, so a client that never reads costs at most one frame per
+ * subscription.
  */
 #include <stdio.h>
 #include <stdlib.h>
@@ -22,14 +24,17 @@ struct sub {
   cJSON *params; /* The validated subscribe params, reused for every frame. */
   int base64;
   uv_timer_t timer;
-  int refs; /* The timer handle and a job in flight. */
-  int in_flight;
+  int refs;        /* The timer handle and the jobs in flight. */
+  int in_flight;   /* Jobs submitted and not yet done, at most SUB_IN_FLIGHT. */
   char *wait_line; /* A finished frame waiting for the socket. */
   size_t wait_len;
   unsigned char *wait_att;
   size_t wait_att_len;
   uint64_t sent, dropped;
 };
+
+/* Frames a subscription may have rendering or encoding at once (see above). */
+#define SUB_IN_FLIGHT 2
 
 static void sub_unref(sub_t *sub) {
   if (--sub->refs > 0)
@@ -130,7 +135,7 @@ static void on_frame_done(job_t *j) {
   sub_t *sub = j->ctx;
   server_t *s = sub->srv;
   render_job_stats(s, j);
-  sub->in_flight = 0;
+  sub->in_flight--;
   if (!sub->conn || sub->conn->closing || j->code != 0) {
     if (j->code != 0 && sub->conn)
       LOG(LOG_WARN, "frames", "subscription %llu: frame failed: %s", (unsigned long long)sub->id,
@@ -196,8 +201,8 @@ static void on_tick(uv_timer_t *t) {
   sub_t *sub = t->data;
   if (!sub->conn)
     return;
-  if (sub->in_flight) {
-    sub->dropped++; /* The previous frame is still rendering: this one is skipped. */
+  if (sub->in_flight >= SUB_IN_FLIGHT) {
+    sub->dropped++; /* Earlier frames are still in flight: this one is skipped. */
     return;
   }
   server_t *s = sub->srv;
@@ -221,7 +226,7 @@ static void on_tick(uv_timer_t *t) {
     sub->dropped++; /* The render queue is full: this frame is skipped. */
     return;
   }
-  sub->in_flight = 1;
+  sub->in_flight++;
   sub->refs++;
 }
 

@@ -5,11 +5,14 @@ server pushes them, over a real socket. Frames per second delivered, the server'
 per frame, and how many were dropped, medians of several runs.
 
     python3 tests/bench/bench_stream.py --bin build/bin --waves 10 --size 512
+    python3 tests/bench/bench_stream.py --bin build/bin --waves 10 --size 512 --png-level 0
     python3 tests/bench/bench_stream.py --bin build/bin --preset demo --size 512
 
 --waves N replaces the scene with the thesis' set-up (paper 000: eye (0,0,300), D = (1,0,0),
 a = 60, b = 30) holding N waves spread across the view, objects off; --preset uses a preset as
-it is.
+it is. --png-level asks for that zlib level (the server's default, -1, is level 1 without
+filtering; 0 stores the rows uncompressed). The median server time per frame is split into the
+render (every pass but encoding) and the PNG encoding, which runs on its own thread.
 """
 
 import argparse
@@ -38,11 +41,12 @@ def thesis_waves(n):
 
 def one_run(srv, args):
     c = srv.connect(timeout=60, rcvbuf=8 << 20)
-    params = {"width": args.size, "height": args.size, "format": "png", "fps": 240}
+    params = {"width": args.size, "height": args.size, "format": "png", "fps": 240,
+              "png_level": args.png_level}
     if args.waves:
         params["layers"] = ["waves"]
     sub, _ = c.ok("frames.subscribe", params)
-    frames, work, last = 0, [], None
+    frames, work, enc, nbytes, last = 0, [], [], [], None
     t_end = time.perf_counter() + args.seconds
     t0 = None
     while time.perf_counter() < t_end:
@@ -55,11 +59,14 @@ def one_run(srv, args):
             continue
         frames += 1
         work.append(p.get("work_ms", 0))
+        enc.append((p.get("passes") or {}).get("encode", 0))
+        nbytes.append(len(att or b""))
         last = p
     dt = time.perf_counter() - t0
     c.send(c.request("frames.unsubscribe", {"id": sub["id"]}))
     c.close()
-    return frames / dt, statistics.median(work), (last or {}).get("dropped", 0)
+    return (frames / dt, statistics.median(work), (last or {}).get("dropped", 0),
+            statistics.median(enc), statistics.median(nbytes))
 
 
 def main():
@@ -70,6 +77,7 @@ def main():
     ap.add_argument("--preset", default="demo")
     ap.add_argument("--seconds", type=float, default=4)
     ap.add_argument("--runs", type=int, default=5)
+    ap.add_argument("--png-level", type=int, default=-1)
     args = ap.parse_args()
     suite = mock.Suite("bench_stream")  # The harness records into a suite; none is checked.
     suite.args = args
@@ -82,14 +90,17 @@ def main():
         runs = [one_run(srv, args) for _ in range(args.runs)]
     fps = statistics.median(r[0] for r in runs)
     work = statistics.median(r[1] for r in runs)
+    enc = statistics.median(r[3] for r in runs)
+    size = statistics.median(r[4] for r in runs)
     what = "%d waves" % args.waves if args.waves else "preset %s" % args.preset
     print("`%s`" % " ".join([os.path.relpath(sys.argv[0])] + sys.argv[1:]))
     print()
-    print("| frames | delivered (median of %d runs) | server work per frame | dropped per run |"
-          % args.runs)
-    print("| --- | ---: | ---: | ---: |")
-    print("| %s, %d² PNG, subscribed at 240 fps | %.1f fps | %.2f ms | %s |" %
-          (what, args.size, fps, work, ", ".join(str(r[2]) for r in runs)))
+    print("| frames | delivered (median of %d runs) | server work per frame: all (encode) | "
+          "PNG bytes | dropped per run |" % args.runs)
+    print("| --- | ---: | ---: | ---: | ---: |")
+    print("| %s, %d² PNG level %d, subscribed at 240 fps | %.1f fps | %.2f ms (%.2f) | %.0f | %s |" %
+          (what, args.size, args.png_level, fps, work, enc, size,
+           ", ".join(str(r[2]) for r in runs)))
 
 
 if __name__ == "__main__":
