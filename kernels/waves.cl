@@ -95,14 +95,17 @@ static inline wfloat wave_recip_est(wfloat x) {
   return native_recip(x);
 }
 
-/* sqrt(x) for finite x >= 0, by wave_rsqrt; 0 stays 0. */
+/* sqrt(x) for finite x >= 0, by wave_rsqrt, where it is used; below FLT_MIN (negative x
+ * included) it is sqrt(FLT_MIN), about 1e-19, for callers that select it away there. */
 static inline wfloat wave_sqrt(wfloat x) {
-  return x * wave_rsqrt(max(x, FLT_MIN));
+  x = max(x, FLT_MIN);
+  return x * wave_rsqrt(x);
 }
 
 /*
- * The unit camera rays of the packet at pixel (x0, y) of frame 'f', computed exactly as the
- * objects kernel computes them, so the opaque depth belongs to the same rays.
+ * The unit camera rays of the packet at pixel (x0, y) of frame 'f', as the objects kernel
+ * computes them but normalised with the reciprocal square-root estimate: the directions differ
+ * by an ulp or so, which moves a ray's end at the opaque depth by some 1e-7 of that depth.
  */
 static inline void wave_rays(const vfx_frame_t *f, int x0, int y, wfloat *dx, wfloat *dy,
                              wfloat *dz) {
@@ -111,7 +114,7 @@ static inline void wave_rays(const vfx_frame_t *f, int x0, int y, wfloat *dx, wf
   wfloat x = f->base[0] + px * f->step_x[0] + py * f->step_y[0];
   wfloat yv = f->base[1] + px * f->step_x[1] + py * f->step_y[1];
   wfloat z = f->base[2] + px * f->step_x[2] + py * f->step_y[2];
-  wfloat il = 1.0f / sqrt(x * x + yv * yv + z * z);
+  wfloat il = wave_rsqrt(x * x + yv * yv + z * z);
   *dx = x * il, *dy = yv * il, *dz = z * il;
 }
 
@@ -208,13 +211,13 @@ static inline wave_ray_t wave_setup(__global const float *restrict wv, float nea
   /* The capsule is convex, so its interval is the hull of those of its three pieces: the two
    * end spheres and the cylinder between the planes. */
   wfloat dm = r2 - w.v2, dl = r2 - w.vl2;
-  wfloat sm = wave_sqrt(max(dm, 0.0f)), sl = wave_sqrt(max(dl, 0.0f));
+  wfloat sm = wave_sqrt(dm), sl = wave_sqrt(dl);
   wfloat in = select((wfloat)INFINITY, -w.bm - sm, dm >= 0.0f);
   wfloat out = select((wfloat)-INFINITY, -w.bm + sm, dm >= 0.0f);
   in = select(in, min(in, -w.bl - sl), dl >= 0.0f);
   out = select(out, max(out, -w.bl + sl), dl >= 0.0f);
   wfloat dc = w.m2 * r2 - w.c * w.c;
-  wfloat sc = wave_sqrt(max(dc, 0.0f)), im2 = wave_div((wfloat)1.0f, max(w.m2, WAVE_PARALLEL));
+  wfloat sc = wave_sqrt(dc), im2 = wave_div((wfloat)1.0f, max(w.m2, WAVE_PARALLEL));
   wfloat cyl_in = select((-w.bp - sc) * im2, (wfloat)-INFINITY, w.par);
   wfloat cyl_out = select((-w.bp + sc) * im2, (wfloat)INFINITY, w.par);
   wint cyl = select(dc >= 0.0f, (wint)(wv[WAVE_GP] < r2 ? -1 : 0), w.par);
