@@ -131,7 +131,8 @@ int renderer_render(renderer_t *r, const render_scene_t *scene, const render_par
 
   /* An 8-bit frame whose last pass is the waves pass is tone-mapped by that pass, which saves
    * a launch and writing and reading the linear image; when no pass runs between the objects and
-   * the waves, an objects pass with nothing to draw need not run either. */
+   * the waves, an objects pass with nothing to draw need not run either. A pass that runs after
+   * the waves must clear 'fused'; one between the objects and the waves, 'objects_optional'. */
   int fluid = (p->layers & LAYER_FLUID) && scene->fluid.count > 0;
   int fused = waves && beauty && p->format != PROTO_FMT_RGBAF32;
   r->objects_optional = fused && !fluid;
