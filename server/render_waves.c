@@ -86,57 +86,98 @@ static void ray_dir(const vfx_frame_t *f, double px, double py, double out[3]) {
 }
 
 /*
+ * The unit normal of the plane through the eye that holds the rays of pixel column 'x' (or, with
+ * 'row', of pixel row 'x'), facing the side where the column (row) number grows when 'grow' is
+ * set and the other side otherwise. Every ray of a column lies in one such plane: the column's
+ * directions are base + x step_x + y step_y for all y.
+ */
+static void edge_plane(const vfx_frame_t *f, double x, int row, int grow, double out[3]) {
+  double d[3], along[3], across[3];
+  for (int i = 0; i < 3; i++) {
+    along[i] = row ? f->step_x[i] : f->step_y[i];
+    across[i] = row ? f->step_y[i] : f->step_x[i];
+  }
+  ray_dir(f, row ? 0 : x, row ? x : 0, d);
+  cross3(d, along, out);
+  double len = sqrt(dot3(out, out));
+  if ((dot3(out, across) < 0) == (grow != 0))
+    len = -len;
+  for (int i = 0; i < 3; i++)
+    out[i] = len != 0 ? out[i] / len : 0;
+}
+
+/*
+ * Whether the segment from 'm' to 'e' (offsets from the eye) with radius 'rad' may reach the
+ * side of 'plane' that it faces.
+ */
+static int may_reach(const double plane[3], const double m[3], const double e[3], double rad) {
+  return dot3(plane, m) >= -rad || dot3(plane, e) >= -rad;
+}
+
+/*
  * Writes to r->host_lists, for each work-group of the waves pass (a tile of the padded image),
  * the number of the 'n' packed waves whose capsule may meet one of the tile's rays, followed by
  * their indices; a tile's list starts at (n + 1) times its index, row by row. The rays of a
- * tile fill the cone between the four planes through the eye and its corner pixels' rays, so
- * a wave is left out when both ends of its axis lie farther than its radius outside one of
- * them. The kernel then tests only the waves of its tile, most of which are near, instead of
- * every wave for every packet. Returns the number of ints written, or 0 when out of memory.
+ * tile fill the cone between four planes through the eye: those of its first and last pixel
+ * columns and rows. A wave is left out when both ends of its axis lie farther than its radius
+ * outside one of them. Each such plane belongs to a column or a row of tiles, so each wave is
+ * tested against the columns and rows once, giving the tile columns and rows it may reach; a
+ * tile lists the waves that may reach both its column and its row. The kernel then tests only
+ * the waves of its tile, most of which are near, instead of every wave for every packet.
+ * Returns the number of ints written, or 0 when out of memory.
  */
 static size_t cull_waves(renderer_t *r, int n) {
   size_t tw = WAVES_PACKET * r->waves_local[0], th = r->waves_local[1];
   size_t nx = r->pitch / tw, ny = r->rows / th, stride = (size_t)n + 1;
   size_t need = nx * ny * stride;
-  if (need > r->host_lists_cap) {
-    int32_t *p = realloc(r->host_lists, need * sizeof(int32_t));
+  /* After the lists: each wave's first and last tile column and row. */
+  size_t total = need + 4 * (size_t)n;
+  if (total > r->host_lists_cap) {
+    int32_t *p = realloc(r->host_lists, total * sizeof(int32_t));
     if (p == NULL)
       return 0;
-    r->host_lists = p, r->host_lists_cap = need;
+    r->host_lists = p, r->host_lists_cap = total;
   }
+  /* The planes of the tiles' first and last columns, then of their first and last rows. */
+  double(*planes)[2][3] = malloc((nx + ny) * sizeof *planes);
+  if (planes == NULL)
+    return 0;
   const vfx_frame_t *f = &r->frame;
+  for (size_t t = 0; t < nx + ny; t++) {
+    int row = t >= nx;
+    size_t k = row ? t - nx : t, size = row ? th : tw;
+    edge_plane(f, k * size + 0.5, row, 1, planes[t][0]);
+    edge_plane(f, (k + 1) * size - 0.5, row, 0, planes[t][1]);
+  }
+  int32_t *range = r->host_lists + need;
+  for (int i = 0; i < n; i++) {
+    const float *rec = r->host_waves + (size_t)i * WAVE_STRIDE;
+    double m[3], e[3];
+    for (int k = 0; k < 3; k++) {
+      m[k] = -(double)rec[WAVE_W + k];
+      e[k] = m[k] + (double)rec[WAVE_L] * rec[WAVE_D + k];
+    }
+    /* A margin for the kernel's rays and records being float. */
+    double rad = rec[WAVE_RADIUS] * 1.001 + 1e-5 * (sqrt(dot3(m, m)) + sqrt(dot3(e, e)));
+    int32_t *rg = range + 4 * (size_t)i;
+    rg[0] = rg[2] = INT32_MAX, rg[1] = rg[3] = -1;
+    for (size_t t = 0; t < nx + ny; t++) {
+      if (!may_reach(planes[t][0], m, e, rad) || !may_reach(planes[t][1], m, e, rad))
+        continue;
+      int row = t >= nx;
+      int32_t k = (int32_t)(row ? t - nx : t), *lo = rg + 2 * row, *hi = lo + 1;
+      *lo = k < *lo ? k : *lo;
+      *hi = k;
+    }
+  }
+  free(planes);
   for (size_t ty = 0; ty < ny; ty++) {
     for (size_t tx = 0; tx < nx; tx++) {
-      double x0 = tx * tw + 0.5, x1 = (tx + 1) * tw - 0.5;
-      double y0 = ty * th + 0.5, y1 = (ty + 1) * th - 0.5;
-      double c00[3], c10[3], c01[3], c11[3], mid[3], pl[4][3];
-      ray_dir(f, x0, y0, c00), ray_dir(f, x1, y0, c10);
-      ray_dir(f, x0, y1, c01), ray_dir(f, x1, y1, c11);
-      ray_dir(f, 0.5 * (x0 + x1), 0.5 * (y0 + y1), mid);
-      cross3(c00, c01, pl[0]), cross3(c10, c11, pl[1]);
-      cross3(c00, c10, pl[2]), cross3(c01, c11, pl[3]);
-      /* Unit normals facing into the cone. */
-      for (int k = 0; k < 4; k++) {
-        double len = sqrt(dot3(pl[k], pl[k]));
-        len = dot3(pl[k], mid) < 0 ? -len : len;
-        for (int i = 0; i < 3; i++)
-          pl[k][i] = len != 0 ? pl[k][i] / len : 0;
-      }
       int32_t *list = r->host_lists + (ty * nx + tx) * stride;
-      int32_t count = 0;
+      int32_t count = 0, x = (int32_t)tx, y = (int32_t)ty;
       for (int i = 0; i < n; i++) {
-        const float *rec = r->host_waves + (size_t)i * WAVE_STRIDE;
-        double m[3], e[3];
-        for (int k = 0; k < 3; k++) {
-          m[k] = -(double)rec[WAVE_W + k];
-          e[k] = m[k] + (double)rec[WAVE_L] * rec[WAVE_D + k];
-        }
-        /* A margin for the kernel's rays and records being float. */
-        double rad = rec[WAVE_RADIUS] * 1.001 + 1e-5 * (sqrt(dot3(m, m)) + sqrt(dot3(e, e)));
-        int out = 0;
-        for (int k = 0; k < 4 && !out; k++)
-          out = dot3(pl[k], m) < -rad && dot3(pl[k], e) < -rad;
-        if (!out)
+        const int32_t *rg = range + 4 * (size_t)i;
+        if (x >= rg[0] && x <= rg[1] && y >= rg[2] && y <= rg[3])
           list[1 + count++] = i;
       }
       list[0] = count;
