@@ -24,8 +24,10 @@
  * of a float16, so that PoCL's code is vector code whatever it does with the work-item loop
  * and fills AVX-512's registers: twice the objects kernel's 8 pixels took about 30% off the pass,
  * which is bound by the number of instructions more than by any one unit. The host lists, for
- * each work-group, the waves that may meet one of its rays (cull_waves in render_waves.c); a packet
- * integrates only those, and skips one whose capsule none of its rays enters.
+ * each work-group, the waves that may meet one of its rays (cull_waves in render_waves.c); a
+ * packet integrates only those, and skips one whose capsule none of its rays enters. When the
+ * pass is the last of an 8-bit frame (WAVES_TONEMAP) it also tone-maps its packets (tonemap.h),
+ * and when the objects pass had nothing to draw (WAVES_EMPTY) it starts from the background.
  */
 #include "common.h"
 #include "tonemap.h"
