@@ -21,22 +21,110 @@ static inline float fluid_hsum(float8 v) {
 }
 
 /*
- * F at (x, y, z) over the 'n8' padded entries of the list at 'first'; writes the sum of the
- * s_j to '*sum_s'. Padding entries lie at FLUID_PAD, where s_j is 0.
+ * Bounding the field ahead along the ray. Let x be a point of the ray e + t d (|d| = 1) and
+ * r_j, sigma_j = 1 - r_j / h the distance to particle j and its unclamped s_j there. Along the
+ * ray, r_j(x + u d) is the norm of an affine function of u, hence convex, so it lies above its
+ * tangent: r_j(x + u d) >= r_j - u k_j with k_j = d . (p_j - x) / r_j in [-1, 1] (the cosine
+ * between the ray and the direction to the particle). So for a step of u = delta h,
+ *   s_j <= max(sigma_j + delta k_j, 0)  and  F <= G(delta) = sum of max(sigma_j + delta k_j, 0)^2
+ * at every point of the step, G(0) = F. G is tangent to F at delta = 0 (its slope there is
+ * 2A, A = sum of s_j k_j, exactly F's) and lies above it, so its first root is a safe step
+ * that approaches the true distance to the surface as the ray closes in on it.
  */
+
+/* What one pass over a cell's list at x gives the march: F, S = sum of s_j, A = sum of s_j
+ * k_j, the nearest particle's sigma_j (-2 when none is within 3h) and G at the steps of
+ * 'ladder' (units of h). */
+typedef struct {
+  float f, s, a, near_sigma;
+  float4 g;
+} fluid_sums_t;
+
+/* Particle j's sigma_j and k_j at (x, y, z) for the ray direction (ux, uy, uz): the loop body
+ * shared by the passes. Padding entries (FLUID_PAD) get a hugely negative sigma_j. */
+#define FLUID_SIGMA_KAPPA                                                                          \
+  float8 px = vload8(0, pos + i) - x, py = vload8(0, pos + stride + i) - y;                        \
+  float8 pz = vload8(0, pos + 2 * stride + i) - z;                                                 \
+  float8 r2 = px * px + py * py + pz * pz;                                                         \
+  float8 ir = rsqrt(fmax(r2, 1e-30f));                                                             \
+  float8 sg = 1.0f - r2 * ir * inv_h;                                                              \
+  /* A hair over the exact cosine, so rounding can only lengthen G's reach. */                     \
+  float8 kp = (px * ux + py * uy + pz * uz) * ir + 1e-3f;
+
+static inline fluid_sums_t fluid_sums(__global const float *restrict pos, int stride, int first,
+                                      int n8, float x, float y, float z, float ux, float uy,
+                                      float uz, float inv_h, float4 ladder) {
+  float8 f = 0.0f, s = 0.0f, a = 0.0f, near = -2.0f, g0 = 0.0f, g1 = 0.0f, g2 = 0.0f, g3 = 0.0f;
+  for (int i = first; i < first + n8; i += 8) {
+    FLUID_SIGMA_KAPPA
+    float8 sj = fmax(sg, 0.0f);
+    f += sj * sj;
+    s += sj;
+    a += sj * kp;
+    near = fmax(near, sg);
+    float8 u0 = fmax(sg + ladder.x * kp, 0.0f), u1 = fmax(sg + ladder.y * kp, 0.0f);
+    float8 u2 = fmax(sg + ladder.z * kp, 0.0f), u3 = fmax(sg + ladder.w * kp, 0.0f);
+    g0 += u0 * u0, g1 += u1 * u1, g2 += u2 * u2, g3 += u3 * u3;
+  }
+  fluid_sums_t r;
+  r.f = fluid_hsum(f);
+  r.s = fluid_hsum(s);
+  r.a = fluid_hsum(a);
+  float4 n4 = fmax(near.lo, near.hi);
+  float2 n2 = fmax(n4.lo, n4.hi);
+  r.near_sigma = fmax(n2.x, n2.y);
+  r.g = (float4)(fluid_hsum(g0), fluid_hsum(g1), fluid_hsum(g2), fluid_hsum(g3));
+  return r;
+}
+
+/* G at the four steps of 'ladder' alone. */
+static inline float4 fluid_ahead(__global const float *restrict pos, int stride, int first,
+                                 int n8, float x, float y, float z, float ux, float uy, float uz,
+                                 float inv_h, float4 ladder) {
+  float8 g0 = 0.0f, g1 = 0.0f, g2 = 0.0f, g3 = 0.0f;
+  for (int i = first; i < first + n8; i += 8) {
+    FLUID_SIGMA_KAPPA
+    float8 u0 = fmax(sg + ladder.x * kp, 0.0f), u1 = fmax(sg + ladder.y * kp, 0.0f);
+    float8 u2 = fmax(sg + ladder.z * kp, 0.0f), u3 = fmax(sg + ladder.w * kp, 0.0f);
+    g0 += u0 * u0, g1 += u1 * u1, g2 += u2 * u2, g3 += u3 * u3;
+  }
+  return (float4)(fluid_hsum(g0), fluid_hsum(g1), fluid_hsum(g2), fluid_hsum(g3));
+}
+
+/* F alone at (x, y, z), as fluid_sums sums it. */
 static inline float fluid_field(__global const float *restrict pos, int stride, int first, int n8,
-                                float x, float y, float z, float inv_h, float *sum_s) {
-  float8 f = 0.0f, s = 0.0f;
+                                float x, float y, float z, float inv_h) {
+  float8 f = 0.0f;
   for (int i = first; i < first + n8; i += 8) {
     float8 dx = vload8(0, pos + i) - x;
     float8 dy = vload8(0, pos + stride + i) - y;
     float8 dz = vload8(0, pos + 2 * stride + i) - z;
     float8 sj = fmax(1.0f - sqrt(dx * dx + dy * dy + dz * dz) * inv_h, 0.0f);
     f += sj * sj;
-    s += sj;
   }
-  *sum_s = fluid_hsum(s);
   return fluid_hsum(f);
+}
+
+/* The fixed steps (units of h) at which every sample evaluates G. */
+#define FLUID_LADDER ((float4)(0.1f, 0.2f, 0.4f, 0.8f))
+
+/* The longest of the steps 'ladder' whose G in 'g' is below t2, or 0. */
+static inline float fluid_best(float4 ladder, float4 g, float t2) {
+  float4 ok = select((float4)0.0f, ladder, g < t2);
+  return fmax(fmax(ok.x, ok.y), fmax(ok.z, ok.w));
+}
+
+/*
+ * A safe step (units of h) from the sums 'q' of FLUID_LADDER at the current point; the list
+ * holds 'm' particles. Besides the ladder's steps with G below t2 = T^2: no particle reaches
+ * within -near_sigma of the point, so a step that long keeps F = 0; and, bounding every k_j by
+ * 1, G(delta) <= F + 2 delta S + m delta^2, below t2 for delta < (t2 - F) / (S + sqrt(S^2 + m
+ * (t2 - F))) (the positive root, written without cancellation). The longest is safe.
+ */
+static inline float fluid_step(fluid_sums_t q, float t2, float m) {
+  float gap = t2 - q.f;
+  float best = fmax(gap / (q.s + sqrt(q.s * q.s + m * gap)), -q.near_sigma);
+  return fmax(best, fluid_best(FLUID_LADDER, q.g, t2));
 }
 
 /* The outward normal at (x, y, z), -grad F / 2h = sum of s_j (x - p_j) / r_j, not unit. */
@@ -59,48 +147,54 @@ static inline float3 fluid_normal(__global const float *restrict pos, int stride
  * entries, 'm' real ones) holds every particle that reaches it, for the first t with
  * F >= T^2. Returns that t, or INFINITY.
  *
- * The step. Let F and S be the sums of s_j^2 and s_j at the current point x. Moving by u,
- * |u| = delta h, changes each r_j by at most |u|, so each s_j grows by at most delta, and a
- * particle with s_j = 0 reaches at most delta. Hence, over the whole step,
- *   F(x + u) <= sum over the list of (s_j + delta)^2 = F + 2 delta S + m delta^2,
- * which stays below T^2 for delta < (T^2 - F) / (S + sqrt(S^2 + m (T^2 - F))) (the positive
- * root of the quadratic, written without cancellation). So no point of the surface, however
- * thin the sheet, lies strictly inside a step of that length: nothing is skipped, and no
- * sample count is capped. Far from the surface the step is long (a lone particle's shell is
- * crossed in a handful of samples); close to a tangent it shrinks, so it has a floor,
- * 'min_step' (h / 2000): a floor step can pass over only a piece of the ray shorter than it
- * that is inside the fluid, i.e. a graze of the surface whose chord is under h / 2000, far
- * below a pixel at any distance we render. The crossing found is bracketed and refined by
- * regula falsi (Illinois) to 'tol', then placed by linear interpolation (the paper's eq. 5).
+ * The march only takes steps over which G, and so F, provably stays below T^2: no point of
+ * the surface, however thin the sheet, lies strictly inside a step, so nothing is skipped and
+ * no sample count is capped. Each sample takes fluid_step's step; when the ray heads into the
+ * field (A > 0) and G's tangent, reaching T^2 at delta_lin = (T^2 - F) / 2A, promises more, a
+ * second pass tries steps of 50-97% of delta_lin. Since G lies above its tangent, its root is
+ * below delta_lin and close to it as the ray closes in, so the remaining distance shrinks
+ * several-fold per sample. Near a tangent of the surface the safe step still shrinks, so it
+ * has a floor, 'min_step' (h / 2000): a floor step can pass over only a piece of the ray
+ * shorter than it that is inside the fluid, i.e. a graze of the surface whose chord is under
+ * h / 2000, far below a pixel at any distance we render. The crossing found is bracketed and
+ * refined by regula falsi (Illinois) to 'tol', then placed by linear interpolation (the
+ * paper's eq. 5).
  */
 static float fluid_search(__global const float *restrict pos, const vfx_fluid_t *fl, int first,
                           int n8, int m, float ex, float ey, float ez, float dx, float dy, float dz,
                           float ta, float tb) {
-  float t2 = fl->threshold * fl->threshold, s;
-  float f = fluid_field(pos, fl->stride, first, n8, ex + ta * dx, ey + ta * dy, ez + ta * dz,
-                        fl->inv_h, &s);
-  if (f >= t2)
+  float t2 = fl->threshold * fl->threshold, inv_h = fl->inv_h;
+  fluid_sums_t q = fluid_sums(pos, fl->stride, first, n8, ex + ta * dx, ey + ta * dy,
+                              ez + ta * dz, dx, dy, dz, inv_h, FLUID_LADDER);
+  if (q.f >= t2)
     return ta;
   float fm = (float)m;
   while (ta < tb) {
-    float gap = t2 - f;
-    float delta = gap / (s + sqrt(s * s + fm * gap));
-    float tn = fmin(ta + fmax(delta * fl->h, fl->min_step), tb);
-    float sn;
-    float fn = fluid_field(pos, fl->stride, first, n8, ex + tn * dx, ey + tn * dy, ez + tn * dz,
-                           fl->inv_h, &sn);
-    if (fn >= t2) {
+    float f = q.f;
+    float step = fluid_step(q, t2, fm);
+    if (q.a > 0.0f && ta + step * fl->h < tb) {
+      float lin = (t2 - f) / (2.0f * q.a);
+      if (lin > 1.25f * step) {
+        float4 ladder = lin * (float4)(0.5f, 0.75f, 0.9f, 0.97f);
+        float4 g = fluid_ahead(pos, fl->stride, first, n8, ex + ta * dx, ey + ta * dy,
+                               ez + ta * dz, dx, dy, dz, inv_h, ladder);
+        step = fmax(step, fluid_best(ladder, g, t2));
+      }
+    }
+    float tn = fmin(ta + fmax(step * fl->h, fl->min_step), tb);
+    q = fluid_sums(pos, fl->stride, first, n8, ex + tn * dx, ey + tn * dy, ez + tn * dz, dx, dy,
+                   dz, inv_h, FLUID_LADDER);
+    if (q.f >= t2) {
       /* I(ta) < 0 <= I(tn): refine on I = sqrt(F) - T, which is close to linear near the
        * surface (exactly so for a lone particle, where sqrt(F) = 1 - r / h). */
-      float a = ta, b = tn, ga = sqrt(f) - fl->threshold, gb = sqrt(fn) - fl->threshold;
+      float a = ta, b = tn, ga = sqrt(f) - fl->threshold, gb = sqrt(q.f) - fl->threshold;
       int side = 0;
       for (int k = 0; k < 40 && b - a > fl->tol; k++) {
         float c = a + (b - a) * (ga / (ga - gb));
         if (!(c > a && c < b))
           c = 0.5f * (a + b);
-        float gs;
         float gc = sqrt(fluid_field(pos, fl->stride, first, n8, ex + c * dx, ey + c * dy,
-                                    ez + c * dz, fl->inv_h, &gs)) -
+                                    ez + c * dz, inv_h)) -
                    fl->threshold;
         if (gc >= 0.0f) {
           b = c, gb = gc;
@@ -117,7 +211,7 @@ static float fluid_search(__global const float *restrict pos, const vfx_fluid_t 
       float w = ga / (ga - gb);
       return a + (b - a) * (w >= 0.0f && w <= 1.0f ? w : 0.5f);
     }
-    ta = tn, f = fn, s = sn;
+    ta = tn;
   }
   return INFINITY;
 }
