@@ -46,7 +46,7 @@ typedef struct {
   float8 px = vload8(0, pos + i) - x, py = vload8(0, pos + stride + i) - y;                        \
   float8 pz = vload8(0, pos + 2 * stride + i) - z;                                                 \
   float8 r2 = px * px + py * py + pz * pz;                                                         \
-  float8 ir = rsqrt(fmax(r2, 1e-30f));                                                             \
+  float8 ir = rsqrt(max(r2, 1e-30f));                                                              \
   float8 sg = 1.0f - r2 * ir * inv_h;                                                              \
   /* A hair over the exact cosine, so rounding can only lengthen G's reach. */                     \
   float8 kp = (px * ux + py * uy + pz * uz) * ir + 1e-3f;
@@ -57,35 +57,35 @@ static inline fluid_sums_t fluid_sums(__global const float *restrict pos, int st
   float8 f = 0.0f, s = 0.0f, a = 0.0f, near = -2.0f, g0 = 0.0f, g1 = 0.0f, g2 = 0.0f, g3 = 0.0f;
   for (int i = first; i < first + n8; i += 8) {
     FLUID_SIGMA_KAPPA
-    float8 sj = fmax(sg, 0.0f);
+    float8 sj = max(sg, 0.0f);
     f += sj * sj;
     s += sj;
     a += sj * kp;
-    near = fmax(near, sg);
-    float8 u0 = fmax(sg + ladder.x * kp, 0.0f), u1 = fmax(sg + ladder.y * kp, 0.0f);
-    float8 u2 = fmax(sg + ladder.z * kp, 0.0f), u3 = fmax(sg + ladder.w * kp, 0.0f);
+    near = max(near, sg);
+    float8 u0 = max(sg + ladder.x * kp, 0.0f), u1 = max(sg + ladder.y * kp, 0.0f);
+    float8 u2 = max(sg + ladder.z * kp, 0.0f), u3 = max(sg + ladder.w * kp, 0.0f);
     g0 += u0 * u0, g1 += u1 * u1, g2 += u2 * u2, g3 += u3 * u3;
   }
   fluid_sums_t r;
   r.f = fluid_hsum(f);
   r.s = fluid_hsum(s);
   r.a = fluid_hsum(a);
-  float4 n4 = fmax(near.lo, near.hi);
-  float2 n2 = fmax(n4.lo, n4.hi);
-  r.near_sigma = fmax(n2.x, n2.y);
+  float4 n4 = max(near.lo, near.hi);
+  float2 n2 = max(n4.lo, n4.hi);
+  r.near_sigma = max(n2.x, n2.y);
   r.g = (float4)(fluid_hsum(g0), fluid_hsum(g1), fluid_hsum(g2), fluid_hsum(g3));
   return r;
 }
 
 /* G at the four steps of 'ladder' alone. */
-static inline float4 fluid_ahead(__global const float *restrict pos, int stride, int first,
-                                 int n8, float x, float y, float z, float ux, float uy, float uz,
+static inline float4 fluid_ahead(__global const float *restrict pos, int stride, int first, int n8,
+                                 float x, float y, float z, float ux, float uy, float uz,
                                  float inv_h, float4 ladder) {
   float8 g0 = 0.0f, g1 = 0.0f, g2 = 0.0f, g3 = 0.0f;
   for (int i = first; i < first + n8; i += 8) {
     FLUID_SIGMA_KAPPA
-    float8 u0 = fmax(sg + ladder.x * kp, 0.0f), u1 = fmax(sg + ladder.y * kp, 0.0f);
-    float8 u2 = fmax(sg + ladder.z * kp, 0.0f), u3 = fmax(sg + ladder.w * kp, 0.0f);
+    float8 u0 = max(sg + ladder.x * kp, 0.0f), u1 = max(sg + ladder.y * kp, 0.0f);
+    float8 u2 = max(sg + ladder.z * kp, 0.0f), u3 = max(sg + ladder.w * kp, 0.0f);
     g0 += u0 * u0, g1 += u1 * u1, g2 += u2 * u2, g3 += u3 * u3;
   }
   return (float4)(fluid_hsum(g0), fluid_hsum(g1), fluid_hsum(g2), fluid_hsum(g3));
@@ -99,7 +99,7 @@ static inline float fluid_field(__global const float *restrict pos, int stride, 
     float8 dx = vload8(0, pos + i) - x;
     float8 dy = vload8(0, pos + stride + i) - y;
     float8 dz = vload8(0, pos + 2 * stride + i) - z;
-    float8 sj = fmax(1.0f - sqrt(dx * dx + dy * dy + dz * dz) * inv_h, 0.0f);
+    float8 sj = max(1.0f - sqrt(dx * dx + dy * dy + dz * dz) * inv_h, 0.0f);
     f += sj * sj;
   }
   return fluid_hsum(f);
@@ -136,7 +136,7 @@ static inline float3 fluid_normal(__global const float *restrict pos, int stride
     float8 dy = y - vload8(0, pos + stride + i);
     float8 dz = z - vload8(0, pos + 2 * stride + i);
     float8 r = sqrt(dx * dx + dy * dy + dz * dz);
-    float8 w = fmax(1.0f - r * inv_h, 0.0f) / fmax(r, 1e-20f);
+    float8 w = max(1.0f - r * inv_h, 0.0f) / max(r, 1e-20f);
     gx += w * dx, gy += w * dy, gz += w * dz;
   }
   return (float3)(fluid_hsum(gx), fluid_hsum(gy), fluid_hsum(gz));
@@ -164,8 +164,8 @@ static float fluid_search(__global const float *restrict pos, const vfx_fluid_t 
                           int n8, int m, float ex, float ey, float ez, float dx, float dy, float dz,
                           float ta, float tb) {
   float t2 = fl->threshold * fl->threshold, inv_h = fl->inv_h;
-  fluid_sums_t q = fluid_sums(pos, fl->stride, first, n8, ex + ta * dx, ey + ta * dy,
-                              ez + ta * dz, dx, dy, dz, inv_h, FLUID_LADDER);
+  fluid_sums_t q = fluid_sums(pos, fl->stride, first, n8, ex + ta * dx, ey + ta * dy, ez + ta * dz,
+                              dx, dy, dz, inv_h, FLUID_LADDER);
   if (q.f >= t2)
     return ta;
   float fm = (float)m;
@@ -176,14 +176,14 @@ static float fluid_search(__global const float *restrict pos, const vfx_fluid_t 
       float lin = (t2 - f) / (2.0f * q.a);
       if (lin > 1.25f * step) {
         float4 ladder = lin * (float4)(0.5f, 0.75f, 0.9f, 0.97f);
-        float4 g = fluid_ahead(pos, fl->stride, first, n8, ex + ta * dx, ey + ta * dy,
-                               ez + ta * dz, dx, dy, dz, inv_h, ladder);
+        float4 g = fluid_ahead(pos, fl->stride, first, n8, ex + ta * dx, ey + ta * dy, ez + ta * dz,
+                               dx, dy, dz, inv_h, ladder);
         step = fmax(step, fluid_best(ladder, g, t2));
       }
     }
     float tn = fmin(ta + fmax(step * fl->h, fl->min_step), tb);
-    q = fluid_sums(pos, fl->stride, first, n8, ex + tn * dx, ey + tn * dy, ez + tn * dz, dx, dy,
-                   dz, inv_h, FLUID_LADDER);
+    q = fluid_sums(pos, fl->stride, first, n8, ex + tn * dx, ey + tn * dy, ez + tn * dz, dx, dy, dz,
+                   inv_h, FLUID_LADDER);
     if (q.f >= t2) {
       /* I(ta) < 0 <= I(tn): refine on I = sqrt(F) - T, which is close to linear near the
        * surface (exactly so for a lone particle, where sqrt(F) = 1 - r / h). */
@@ -241,7 +241,8 @@ __kernel void fluid(vfx_frame_t f, vfx_fluid_t fl, __global const int *restrict 
   float t0y = (fl.box_min[1] - ey) * iy, t1y = (fl.box_max[1] - ey) * iy;
   float t0z = (fl.box_min[2] - ez) * iz, t1z = (fl.box_max[2] - ez) * iz;
   float t = fmax(fmax(fmin(t0x, t1x), fmin(t0y, t1y)), fmax(fmin(t0z, t1z), f.near_));
-  float tend = fmin(fmin(fmax(t0x, t1x), fmax(t0y, t1y)), fmin(fmax(t0z, t1z), fmin(opaque, f.far_)));
+  float tend =
+      fmin(fmin(fmax(t0x, t1x), fmax(t0y, t1y)), fmin(fmax(t0z, t1z), fmin(opaque, f.far_)));
   if (!(t <= tend))
     return;
 
@@ -312,13 +313,15 @@ __kernel void fluid(vfx_frame_t f, vfx_fluid_t fl, __global const int *restrict 
   float3 hv = l + v;
   float hl = length(hv);
   float nh = hl > 0.0f ? fmax(dot(n, hv) / hl, 0.0f) : 0.0f;
-  float spec = dot(n, l) > 0.0f ? pow(nh, fl.shininess) * (fl.shininess + 8.0f) * 0.0398f : 0.0f;
+  float spec = dot(n, l) > 0.0f
+                   ? native_exp2(fl.shininess * native_log2(nh)) * (fl.shininess + 8.0f) * 0.0398f
+                   : 0.0f;
   /* Absorption as through water reaching back to the opaque surface behind, at most 3h of it
    * (we do not trace the exit point): thin sheets over the floor stay clear, deep water and
    * drops against the sky take the tint's full colour. */
   float4 behind = vload4(o, linear);
   float depth_h = clamp((fmin(opaque, hit + 3.0f * fl.h) - hit) * fl.inv_h, 0.35f, 3.0f);
-  float3 tint = pow((float3)(fl.color[0], fl.color[1], fl.color[2]), depth_h);
+  float3 tint = native_exp2(depth_h * native_log2((float3)(fl.color[0], fl.color[1], fl.color[2])));
   float3 bg = (float3)(f.bg[0], f.bg[1], f.bg[2]);
   float3 col = fr * (bg * sky + spec * lrgb) + (1.0f - fr) * tint * behind.xyz;
   vstore4((float4)(col, 1.0f), o, linear);
