@@ -142,6 +142,44 @@ static inline float3 fluid_normal(__global const float *restrict pos, int stride
   return (float3)(fluid_hsum(gx), fluid_hsum(gy), fluid_hsum(gz));
 }
 
+/* The tangent's predicted distance to the surface (units of h) under which the march looks
+ * FLUID_PAST times as far ahead for the crossing. */
+#define FLUID_CLOSE 0.05f
+#define FLUID_PAST 1.5f
+
+/*
+ * The crossing in [a, b], F(a) = fa < T^2 <= F(b) = fb, refined on I = sqrt(F) - T (close to
+ * linear near the surface, exactly so for a lone particle, where sqrt(F) = 1 - r / h) by
+ * regula falsi (Illinois) to 'tol', then placed by linear interpolation (the paper's eq. 5).
+ */
+static float fluid_refine(__global const float *restrict pos, const vfx_fluid_t *fl, int first,
+                          int n8, float ex, float ey, float ez, float dx, float dy, float dz,
+                          float a, float b, float fa, float fb) {
+  float ga = sqrt(fa) - fl->threshold, gb = sqrt(fb) - fl->threshold;
+  int side = 0;
+  for (int k = 0; k < 40 && b - a > fl->tol; k++) {
+    float c = a + (b - a) * (ga / (ga - gb));
+    if (!(c > a && c < b))
+      c = 0.5f * (a + b);
+    float gc = sqrt(fluid_field(pos, fl->stride, first, n8, ex + c * dx, ey + c * dy, ez + c * dz,
+                                fl->inv_h)) -
+               fl->threshold;
+    if (gc >= 0.0f) {
+      b = c, gb = gc;
+      if (side == 1)
+        ga *= 0.5f;
+      side = 1;
+    } else {
+      a = c, ga = gc;
+      if (side == -1)
+        gb *= 0.5f;
+      side = -1;
+    }
+  }
+  float w = ga / (ga - gb);
+  return a + (b - a) * (w >= 0.0f && w <= 1.0f ? w : 0.5f);
+}
+
 /*
  * Searches the ray e + t d over [ta, tb], inside one cell whose list ('first', 'n8' padded
  * entries, 'm' real ones) holds every particle that reaches it, for the first t with
@@ -153,12 +191,15 @@ static inline float3 fluid_normal(__global const float *restrict pos, int stride
  * field (A > 0) and G's tangent, reaching T^2 at delta_lin = (T^2 - F) / 2A, promises more, a
  * second pass tries steps of 50-97% of delta_lin. Since G lies above its tangent, its root is
  * below delta_lin and close to it as the ray closes in, so the remaining distance shrinks
- * several-fold per sample. Near a tangent of the surface the safe step still shrinks, so it
- * has a floor, 'min_step' (h / 2000): a floor step can pass over only a piece of the ray
- * shorter than it that is inside the fluid, i.e. a graze of the surface whose chord is under
- * h / 2000, far below a pixel at any distance we render. The crossing found is bracketed and
- * refined by regula falsi (Illinois) to 'tol', then placed by linear interpolation (the
- * paper's eq. 5).
+ * several-fold per sample. Once the tangent puts the surface closer than FLUID_CLOSE h, one
+ * field sample FLUID_PAST times as far ahead is tried: if it lies inside, the crossing is
+ * bracketed at once. That look can only end the march on a crossing, never carry it past one,
+ * so it cannot make a hole; at worst, when a sliver of fluid thinner than the look lies in
+ * front of the surface, the refinement may settle on the surface just behind the sliver.
+ * Near a tangent of the surface the safe step still shrinks, so it has a floor, 'min_step'
+ * (h / 2000): a floor step can pass over only a piece of the ray shorter than it that is
+ * inside the fluid, i.e. a graze of the surface whose chord is under h / 2000, far below a
+ * pixel at any distance we render. The crossing is refined by fluid_refine.
  */
 static float fluid_search(__global const float *restrict pos, const vfx_fluid_t *fl, int first,
                           int n8, int m, float ex, float ey, float ez, float dx, float dy, float dz,
@@ -172,45 +213,27 @@ static float fluid_search(__global const float *restrict pos, const vfx_fluid_t 
   while (ta < tb) {
     float f = q.f;
     float step = fluid_step(q, t2, fm);
-    if (q.a > 0.0f && ta + step * fl->h < tb) {
-      float lin = (t2 - f) / (2.0f * q.a);
-      if (lin > 1.25f * step) {
-        float4 ladder = lin * (float4)(0.5f, 0.75f, 0.9f, 0.97f);
-        float4 g = fluid_ahead(pos, fl->stride, first, n8, ex + ta * dx, ey + ta * dy, ez + ta * dz,
-                               dx, dy, dz, inv_h, ladder);
-        step = fmax(step, fluid_best(ladder, g, t2));
-      }
+    float lin = q.a > 0.0f ? (t2 - f) / (2.0f * q.a) : INFINITY;
+    if (lin < FLUID_CLOSE && ta + FLUID_PAST * lin * fl->h < tb) {
+      /* Close in front of the surface: a look just past the tangent's crossing. Inside there,
+       * the bracket is refined; otherwise it was a graze and the march goes on. */
+      float ts = ta + FLUID_PAST * lin * fl->h;
+      float fs =
+          fluid_field(pos, fl->stride, first, n8, ex + ts * dx, ey + ts * dy, ez + ts * dz, inv_h);
+      if (fs >= t2)
+        return fluid_refine(pos, fl, first, n8, ex, ey, ez, dx, dy, dz, ta, ts, f, fs);
+    }
+    if (lin < INFINITY && lin > 1.25f * step && ta + step * fl->h < tb) {
+      float4 ladder = lin * (float4)(0.5f, 0.75f, 0.9f, 0.97f);
+      float4 g = fluid_ahead(pos, fl->stride, first, n8, ex + ta * dx, ey + ta * dy, ez + ta * dz,
+                             dx, dy, dz, inv_h, ladder);
+      step = fmax(step, fluid_best(ladder, g, t2));
     }
     float tn = fmin(ta + fmax(step * fl->h, fl->min_step), tb);
     q = fluid_sums(pos, fl->stride, first, n8, ex + tn * dx, ey + tn * dy, ez + tn * dz, dx, dy, dz,
                    inv_h, FLUID_LADDER);
-    if (q.f >= t2) {
-      /* I(ta) < 0 <= I(tn): refine on I = sqrt(F) - T, which is close to linear near the
-       * surface (exactly so for a lone particle, where sqrt(F) = 1 - r / h). */
-      float a = ta, b = tn, ga = sqrt(f) - fl->threshold, gb = sqrt(q.f) - fl->threshold;
-      int side = 0;
-      for (int k = 0; k < 40 && b - a > fl->tol; k++) {
-        float c = a + (b - a) * (ga / (ga - gb));
-        if (!(c > a && c < b))
-          c = 0.5f * (a + b);
-        float gc = sqrt(fluid_field(pos, fl->stride, first, n8, ex + c * dx, ey + c * dy,
-                                    ez + c * dz, inv_h)) -
-                   fl->threshold;
-        if (gc >= 0.0f) {
-          b = c, gb = gc;
-          if (side == 1)
-            ga *= 0.5f;
-          side = 1;
-        } else {
-          a = c, ga = gc;
-          if (side == -1)
-            gb *= 0.5f;
-          side = -1;
-        }
-      }
-      float w = ga / (ga - gb);
-      return a + (b - a) * (w >= 0.0f && w <= 1.0f ? w : 0.5f);
-    }
+    if (q.f >= t2)
+      return fluid_refine(pos, fl, first, n8, ex, ey, ez, dx, dy, dz, ta, tn, f, q.f);
     ta = tn;
   }
   return INFINITY;
