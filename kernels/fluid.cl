@@ -144,7 +144,7 @@ static inline float3 fluid_normal(__global const float *restrict pos, int stride
 
 /* The tangent's predicted distance to the surface (units of h) under which the march looks
  * FLUID_PAST times as far ahead for the crossing. */
-#define FLUID_CLOSE 0.05f
+#define FLUID_CLOSE 0.1f
 #define FLUID_PAST 1.5f
 
 /*

@@ -167,7 +167,7 @@ int render_pass_fluid(renderer_t *r, const render_scene_t *scene, int *ran, char
   fl.inv_h = 1.0f / fd->h;
   fl.threshold = fd->threshold;
   fl.min_step = fd->h / 2000;
-  fl.tol = fd->h * 1e-4f;
+  fl.tol = fd->h * 1e-3f;
   double ior = isfinite(fd->ior) && fd->ior > 0 ? fd->ior : 1.33;
   double f0 = (ior - 1) / (ior + 1);
   fl.f0 = (float)(f0 * f0);
