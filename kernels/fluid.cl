@@ -201,14 +201,28 @@ static float fluid_refine(__global const float *restrict pos, const vfx_fluid_t 
  * inside the fluid, i.e. a graze of the surface whose chord is under h / 2000, far below a
  * pixel at any distance we render. The crossing is refined by fluid_refine.
  */
+/* The march's last sample in the cell it left, kept for the cell it enters: its t (negative
+ * when there is none), F there, and that cell's list. */
+typedef struct {
+  float t, f;
+  int first, n8;
+} fluid_prev_t;
+
 static float fluid_search(__global const float *restrict pos, const vfx_fluid_t *fl, int first,
                           int n8, int m, float ex, float ey, float ez, float dx, float dy, float dz,
-                          float ta, float tb) {
+                          float ta, float tb, int last, fluid_prev_t *prev) {
   float t2 = fl->threshold * fl->threshold, inv_h = fl->inv_h;
   fluid_sums_t q = fluid_sums(pos, fl->stride, first, n8, ex + ta * dx, ey + ta * dy, ez + ta * dz,
                               dx, dy, dz, inv_h, FLUID_LADDER);
-  if (q.f >= t2)
+  if (q.f >= t2) {
+    /* The crossing lies in the previous cell's last step, whose list covers that step. */
+    if (prev->t >= 0.0f && prev->t < ta)
+      return fluid_refine(pos, fl, prev->first, prev->n8, ex, ey, ez, dx, dy, dz, prev->t, ta,
+                          prev->f, q.f);
+    prev->first = first, prev->n8 = n8;
     return ta;
+  }
+  prev->first = first, prev->n8 = n8;
   float fm = (float)m;
   while (ta < tb) {
     float f = q.f;
@@ -229,13 +243,21 @@ static float fluid_search(__global const float *restrict pos, const vfx_fluid_t 
                              dx, dy, dz, inv_h, ladder);
       step = fmax(step, fluid_best(ladder, g, t2));
     }
-    float tn = fmin(ta + fmax(step * fl->h, fl->min_step), tb);
+    float tn = ta + fmax(step * fl->h, fl->min_step);
+    if (tn >= tb && !last) {
+      /* The step is safe to the cell's end; the next cell's first sample, at that end, decides
+       * whether the crossing lies there. */
+      prev->t = ta, prev->f = f;
+      return INFINITY;
+    }
+    tn = fmin(tn, tb);
     q = fluid_sums(pos, fl->stride, first, n8, ex + tn * dx, ey + tn * dy, ez + tn * dz, dx, dy, dz,
                    inv_h, FLUID_LADDER);
     if (q.f >= t2)
       return fluid_refine(pos, fl, first, n8, ex, ey, ez, dx, dy, dz, ta, tn, f, q.f);
     ta = tn;
   }
+  prev->t = -1.0f;
   return INFINITY;
 }
 
@@ -289,16 +311,19 @@ __kernel void fluid(vfx_frame_t f, vfx_fluid_t fl, __global const int *restrict 
     nz = INFINITY;
 
   float hit = INFINITY;
-  int first = 0, n8 = 0;
+  fluid_prev_t prev = {-1.0f, 0.0f, 0, 0};
   for (;;) {
     float tb = fmin(fmin(nx, ny), fmin(nz, tend));
     int c = (kz * fl.dims[1] + ky) * fl.dims[0] + kx;
     int m = cells[2 * c + 1];
     if (m > 0 && tb >= t) {
-      first = cells[2 * c], n8 = (m + 7) & ~7;
-      hit = fluid_search(pos, &fl, first, n8, m, ex, ey, ez, dx, dy, dz, t, tb);
+      hit = fluid_search(pos, &fl, cells[2 * c], (m + 7) & ~7, m, ex, ey, ez, dx, dy, dz, t, tb,
+                         tb >= tend, &prev);
       if (hit < INFINITY)
         break;
+    } else {
+      /* F is 0 all over an empty cell, so nothing carries across it. */
+      prev.t = -1.0f;
     }
     if (tb >= tend)
       break;
@@ -320,7 +345,7 @@ __kernel void fluid(vfx_frame_t f, vfx_fluid_t fl, __global const int *restrict 
    * a sky would be; the scene has no environment map) with the transmitted colour behind,
    * tinted; a Blinn-Phong highlight of the light sits on top. */
   float hx = ex + hit * dx, hy = ey + hit * dy, hz = ez + hit * dz;
-  float3 n = fluid_normal(pos, fl.stride, first, n8, hx, hy, hz, fl.inv_h);
+  float3 n = fluid_normal(pos, fl.stride, prev.first, prev.n8, hx, hy, hz, fl.inv_h);
   float nl = length(n);
   n = nl > 0.0f ? n / nl : (float3)(-dx, -dy, -dz);
   float3 d = (float3)(dx, dy, dz), v = -d;
