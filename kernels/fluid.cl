@@ -28,8 +28,10 @@ static inline float fluid_hsum(float8 v) {
  * between the ray and the direction to the particle). So for a step of u = delta h,
  *   s_j <= max(sigma_j + delta k_j, 0)  and  F <= G(delta) = sum of max(sigma_j + delta k_j, 0)^2
  * at every point of the step, G(0) = F. G is tangent to F at delta = 0 (its slope there is
- * 2A, A = sum of s_j k_j, exactly F's) and lies above it, so its first root is a safe step
- * that approaches the true distance to the surface as the ray closes in on it.
+ * 2A, A = sum of s_j k_j, exactly F's) and lies above it: a step with G below T^2 is safe, and
+ * as the ray closes in on the surface the longest such step approaches the true distance.
+ * (Bounding every k_j by 1 instead, as fluid_step's cruder bound does, cuts the steps near a
+ * dense block to a few hundredths of h.)
  */
 
 /* What one pass over a cell's list at x gives the march: F, S = sum of s_j, A = sum of s_j
@@ -40,23 +42,19 @@ typedef struct {
   float4 g;
 } fluid_sums_t;
 
-/* Particle j's sigma_j and k_j at (x, y, z) for the ray direction (ux, uy, uz): the loop body
- * shared by the passes. Padding entries (FLUID_PAD) get a hugely negative sigma_j. */
-#define FLUID_SIGMA_KAPPA                                                                          \
-  float8 px = vload8(0, pos + i) - x, py = vload8(0, pos + stride + i) - y;                        \
-  float8 pz = vload8(0, pos + 2 * stride + i) - z;                                                 \
-  float8 r2 = px * px + py * py + pz * pz;                                                         \
-  float8 ir = rsqrt(max(r2, 1e-30f));                                                              \
-  float8 sg = 1.0f - r2 * ir * inv_h;                                                              \
-  /* A hair over the exact cosine, so rounding can only lengthen G's reach. */                     \
-  float8 kp = (px * ux + py * uy + pz * uz) * ir + 1e-3f;
-
 static inline fluid_sums_t fluid_sums(__global const float *restrict pos, int stride, int first,
                                       int n8, float x, float y, float z, float ux, float uy,
                                       float uz, float inv_h, float4 ladder) {
   float8 f = 0.0f, s = 0.0f, a = 0.0f, near = -2.0f, g0 = 0.0f, g1 = 0.0f, g2 = 0.0f, g3 = 0.0f;
   for (int i = first; i < first + n8; i += 8) {
-    FLUID_SIGMA_KAPPA
+    float8 px = vload8(0, pos + i) - x, py = vload8(0, pos + stride + i) - y;
+    float8 pz = vload8(0, pos + 2 * stride + i) - z;
+    float8 r2 = px * px + py * py + pz * pz;
+    float8 ir = rsqrt(max(r2, 1e-30f));
+    /* sigma_j and k_j; padding entries (FLUID_PAD) get a hugely negative sigma_j. A hair is
+     * added to the cosine so that rounding can only lengthen G's reach. */
+    float8 sg = 1.0f - r2 * ir * inv_h;
+    float8 kp = (px * ux + py * uy + pz * uz) * ir + 1e-3f;
     float8 sj = max(sg, 0.0f);
     f += sj * sj;
     s += sj;
@@ -75,20 +73,6 @@ static inline fluid_sums_t fluid_sums(__global const float *restrict pos, int st
   r.near_sigma = max(n2.x, n2.y);
   r.g = (float4)(fluid_hsum(g0), fluid_hsum(g1), fluid_hsum(g2), fluid_hsum(g3));
   return r;
-}
-
-/* G at the four steps of 'ladder' alone. */
-static inline float4 fluid_ahead(__global const float *restrict pos, int stride, int first, int n8,
-                                 float x, float y, float z, float ux, float uy, float uz,
-                                 float inv_h, float4 ladder) {
-  float8 g0 = 0.0f, g1 = 0.0f, g2 = 0.0f, g3 = 0.0f;
-  for (int i = first; i < first + n8; i += 8) {
-    FLUID_SIGMA_KAPPA
-    float8 u0 = max(sg + ladder.x * kp, 0.0f), u1 = max(sg + ladder.y * kp, 0.0f);
-    float8 u2 = max(sg + ladder.z * kp, 0.0f), u3 = max(sg + ladder.w * kp, 0.0f);
-    g0 += u0 * u0, g1 += u1 * u1, g2 += u2 * u2, g3 += u3 * u3;
-  }
-  return (float4)(fluid_hsum(g0), fluid_hsum(g1), fluid_hsum(g2), fluid_hsum(g3));
 }
 
 /* F alone at (x, y, z), as fluid_sums sums it. */
@@ -180,27 +164,6 @@ static float fluid_refine(__global const float *restrict pos, const vfx_fluid_t 
   return a + (b - a) * (w >= 0.0f && w <= 1.0f ? w : 0.5f);
 }
 
-/*
- * Searches the ray e + t d over [ta, tb], inside one cell whose list ('first', 'n8' padded
- * entries, 'm' real ones) holds every particle that reaches it, for the first t with
- * F >= T^2. Returns that t, or INFINITY.
- *
- * The march only takes steps over which G, and so F, provably stays below T^2: no point of
- * the surface, however thin the sheet, lies strictly inside a step, so nothing is skipped and
- * no sample count is capped. Each sample takes fluid_step's step; when the ray heads into the
- * field (A > 0) and G's tangent, reaching T^2 at delta_lin = (T^2 - F) / 2A, promises more, a
- * second pass tries steps of 50-97% of delta_lin. Since G lies above its tangent, its root is
- * below delta_lin and close to it as the ray closes in, so the remaining distance shrinks
- * several-fold per sample. Once the tangent puts the surface closer than FLUID_CLOSE h, one
- * field sample FLUID_PAST times as far ahead is tried: if it lies inside, the crossing is
- * bracketed at once. That look can only end the march on a crossing, never carry it past one,
- * so it cannot make a hole; at worst, when a sliver of fluid thinner than the look lies in
- * front of the surface, the refinement may settle on the surface just behind the sliver.
- * Near a tangent of the surface the safe step still shrinks, so it has a floor, 'min_step'
- * (h / 2000): a floor step can pass over only a piece of the ray shorter than it that is
- * inside the fluid, i.e. a graze of the surface whose chord is under h / 2000, far below a
- * pixel at any distance we render. The crossing is refined by fluid_refine.
- */
 /* The march's last sample in the cell it left, kept for the cell it enters: its t (negative
  * when there is none), F there, and that cell's list. */
 typedef struct {
@@ -208,6 +171,28 @@ typedef struct {
   int first, n8;
 } fluid_prev_t;
 
+/*
+ * Searches the ray e + t d over [ta, tb], inside one cell whose list ('first', 'n8' padded
+ * entries, 'm' real ones) holds every particle that reaches it, for the first t with
+ * F >= T^2. Returns that t, or INFINITY. 'prev' carries the last sample of the cell before
+ * (used when F >= T^2 already at ta) and comes back with the list the hit lies in, or with
+ * this cell's last sample when a step reaches tb and 'last' is 0.
+ *
+ * The march only takes steps over which G, and so F, provably stays below T^2: no point of
+ * the surface, however thin the sheet, lies strictly inside a step, so nothing is skipped and
+ * no sample count is capped. Each sample takes fluid_step's step (the longest of G's ladder
+ * below T^2, the reach of the nearest particle, or the cruder bound), so the remaining
+ * distance shrinks several-fold per sample. Once G's tangent, which reaches T^2 at
+ * delta_lin = (T^2 - F) / 2A, puts the surface closer than FLUID_CLOSE h, one field sample
+ * FLUID_PAST times as far ahead is tried: if it lies inside, the crossing is bracketed at once.
+ * That look can only end the march on a crossing, never carry it past one, so it cannot make
+ * a hole; at worst, when a sliver of fluid thinner than the look lies in front of the
+ * surface, the refinement may settle on the surface just behind the sliver. Near a tangent of
+ * the surface the safe step still shrinks, so it has a floor, 'min_step' (h / 2000): a floor
+ * step can pass over only a piece of the ray shorter than it that is inside the fluid, i.e. a
+ * graze of the surface whose chord is under h / 2000, far below a pixel at any distance we
+ * render. The crossing is refined by fluid_refine.
+ */
 static float fluid_search(__global const float *restrict pos, const vfx_fluid_t *fl, int first,
                           int n8, int m, float ex, float ey, float ez, float dx, float dy, float dz,
                           float ta, float tb, int last, fluid_prev_t *prev) {
@@ -236,12 +221,6 @@ static float fluid_search(__global const float *restrict pos, const vfx_fluid_t 
           fluid_field(pos, fl->stride, first, n8, ex + ts * dx, ey + ts * dy, ez + ts * dz, inv_h);
       if (fs >= t2)
         return fluid_refine(pos, fl, first, n8, ex, ey, ez, dx, dy, dz, ta, ts, f, fs);
-    }
-    if (lin < INFINITY && lin > 1.25f * step && ta + step * fl->h < tb) {
-      float4 ladder = lin * (float4)(0.5f, 0.75f, 0.9f, 0.97f);
-      float4 g = fluid_ahead(pos, fl->stride, first, n8, ex + ta * dx, ey + ta * dy, ez + ta * dz,
-                             dx, dy, dz, inv_h, ladder);
-      step = fmax(step, fluid_best(ladder, g, t2));
     }
     float tn = ta + fmax(step * fl->h, fl->min_step);
     if (tn >= tb && !last) {
