@@ -25,11 +25,14 @@ static inline float fluid_hsum(float8 v) {
  * r_j, sigma_j = 1 - r_j / h the distance to particle j and its unclamped s_j there. Along the
  * ray, r_j(x + u d) is the norm of an affine function of u, hence convex, so it lies above its
  * tangent: r_j(x + u d) >= r_j - u k_j with k_j = d . (p_j - x) / r_j in [-1, 1] (the cosine
- * between the ray and the direction to the particle). So for a step of u = delta h,
- *   s_j <= max(sigma_j + delta k_j, 0)  and  F <= G(delta) = sum of max(sigma_j + delta k_j, 0)^2
- * at every point of the step, G(0) = F. G is tangent to F at delta = 0 (its slope there is
- * 2A, A = sum of s_j k_j, exactly F's) and lies above it: a step with G below T^2 is safe, and
- * as the ray closes in on the surface the longest such step approaches the true distance.
+ * between the ray and the direction to the particle). So at u = delta h along the ray,
+ *   s_j <= max(sigma_j + delta k_j, 0)  and  F <= G(delta) = sum of max(sigma_j + delta k_j, 0)^2.
+ * G is a sum of squares of clamped linear functions, hence convex in delta, so over a whole
+ * step [0, D] it never exceeds the larger of G(0) = F and G(D): with both below T^2, F stays
+ * below T^2 at every point of the step. G is tangent to F at delta = 0 (its slope there is
+ * 2A, A = sum of s_j k_j, exactly F's) and lies above it: a step D with G(D) below T^2 is
+ * safe, and as the ray closes in on the surface the longest such step approaches the true
+ * distance.
  * (Bounding every k_j by 1 instead, as fluid_step's cruder bound does, cuts the steps near a
  * dense block to a few hundredths of h.)
  */
