@@ -24,15 +24,19 @@
 #define SPH_LOCAL 64 /* The local size of both kernels; sim_fluid.c uses the same. */
 
 /* Collider records of SPHC_STRIDE floats: kind, centre, the rotation R (row-major, world =
- * R * object), semi extents (box) or semi-axes (ellipsoid). */
+ * R * object), semi extents (box) or semi-axes (ellipsoid). A tetrahedron's record is its kind
+ * and, from SPHC_PLANES, its four face planes in the world: unit outward normal n and offset d,
+ * the solid being n . x < d for all four. */
 #define SPHC_KIND 0
 #define SPHC_CENTER 1
 #define SPHC_ROT 4
 #define SPHC_HALF 13
-#define SPHC_STRIDE 16
+#define SPHC_PLANES 1
+#define SPHC_STRIDE 20
 #define SPHC_SPHERE 0
 #define SPHC_BOX 1
 #define SPHC_PLANE 2
+#define SPHC_TETRA 3
 
 #define SPH_WALL_N 64 /* Intervals of the wall tables over [0, h]; sim_fluid.c uses the same. */
 
@@ -74,9 +78,8 @@ inline float sph_sum8(float8 v) {
 }
 
 __kernel __attribute__((reqd_work_group_size(SPH_LOCAL, 1, 1))) void
-sph_density(__global const float *state, int stride, int n, __global const int *cell_start,
-            int nx, int ny, int nz, float ox, float oy, float oz, float inv_cell, float inv_cell_x,
-            float h,
+sph_density(__global const float *state, int stride, int n, __global const int *cell_start, int nx,
+            int ny, int nz, float ox, float oy, float oz, float inv_cell, float inv_cell_x, float h,
             float mass_kernel, float rest_density, float stiffness, __global const float *wall,
             float inv_h, float bx0, float by0, float bz0, float bx1, float by1, float bz1,
             __global float *inv_rho_out, __global float *pr2_out) {
@@ -110,13 +113,38 @@ sph_density(__global const float *state, int stride, int n, __global const int *
    * corner the regions beyond two walls overlap, and 1 - (1 - fx)(1 - fy)(1 - fz) counts
    * the overlap once (exactly so for a separable kernel, closely for ours). */
   float3 f = sph_fill(wall, xi, yi, zi, inv_h, bx0, by0, bz0, bx1, by1, bz1, rest_density);
-  float rho = mass_kernel * sum + rest_density * (1.0f - (1.0f - f.x) * (1.0f - f.y) * (1.0f - f.z));
+  float rho =
+      mass_kernel * sum + rest_density * (1.0f - (1.0f - f.x) * (1.0f - f.y) * (1.0f - f.z));
   inv_rho_out[i] = 1.0f / rho;
   pr2_out[i] = fmax(stiffness * (rho - rest_density), 0.0f) / (rho * rho);
 }
 
-/* Pushes (x, v) out of collider record 'c' and removes the velocity into its surface. */
-inline void sph_collide(__global const float *c, float3 *x, float3 *v) {
+/* Pushes (x, v) out of tetrahedron record 'c' through the face it is least deep behind and
+ * removes the velocity into that face. Returns whether it was inside. */
+inline int sph_collide_tetra(__global const float *c, float3 *x, float3 *v) {
+  float best = -INFINITY;
+  float3 n = (float3)(0.0f);
+  for (int k = 0; k < 4; k++) {
+    __global const float *pl = c + SPHC_PLANES + 4 * k;
+    float3 nk = (float3)(pl[0], pl[1], pl[2]);
+    float s = dot(nk, *x) - pl[3];
+    if (s >= 0.0f)
+      return 0;
+    if (s > best)
+      best = s, n = nk;
+  }
+  *x -= best * n;
+  float vn = dot(*v, n);
+  if (vn < 0.0f)
+    *v -= vn * n;
+  return 1;
+}
+
+/* Pushes (x, v) out of collider record 'c' and removes the velocity into its surface. Returns
+ * whether it was inside. */
+inline int sph_collide(__global const float *c, float3 *x, float3 *v) {
+  if ((int)c[SPHC_KIND] == SPHC_TETRA)
+    return sph_collide_tetra(c, x, v);
   float3 ctr = (float3)(c[SPHC_CENTER], c[SPHC_CENTER + 1], c[SPHC_CENTER + 2]);
   float3 r0 = (float3)(c[SPHC_ROT], c[SPHC_ROT + 1], c[SPHC_ROT + 2]);
   float3 r1 = (float3)(c[SPHC_ROT + 3], c[SPHC_ROT + 4], c[SPHC_ROT + 5]);
@@ -126,7 +154,7 @@ inline void sph_collide(__global const float *c, float3 *x, float3 *v) {
   /* Object-space offset q = R^T d; R's columns are the object's axes in the world. */
   float3 q = r0 * d.x + r1 * d.y + r2 * d.z;
   int kind = (int)c[SPHC_KIND];
-  float3 qn; /* The surface point, object space. */
+  float3 qn;  /* The surface point, object space. */
   float3 nrm; /* Outward normal, object space (unnormalised). */
   int inside;
   if (kind == SPHC_SPHERE) {
@@ -157,7 +185,7 @@ inline void sph_collide(__global const float *c, float3 *x, float3 *v) {
     nrm = (float3)(0.0f, 1.0f, 0.0f);
   }
   if (!inside)
-    return;
+    return 0;
   /* Back to the world: world = R * object. */
   float3 c0 = (float3)(r0.x, r1.x, r2.x), c1 = (float3)(r0.y, r1.y, r2.y),
          c2 = (float3)(r0.z, r1.z, r2.z);
@@ -166,12 +194,15 @@ inline void sph_collide(__global const float *c, float3 *x, float3 *v) {
   float vn = dot(*v, n);
   if (vn < 0.0f)
     *v -= vn * n;
+  return 1;
 }
 
+/* The most rounds of pushes out of the colliders per substep (see sph_forces). */
+#define SPH_COLLIDE_ROUNDS 8
+
 __kernel __attribute__((reqd_work_group_size(SPH_LOCAL, 1, 1))) void
-sph_forces(__global const float *state, int stride, int n, __global const int *cell_start,
-           int nx, int ny, int nz, float ox, float oy, float oz, float inv_cell, float inv_cell_x,
-            float h,
+sph_forces(__global const float *state, int stride, int n, __global const int *cell_start, int nx,
+           int ny, int nz, float ox, float oy, float oz, float inv_cell, float inv_cell_x, float h,
            __global const float *inv_rho, __global const float *pr2, float mass_spiky,
            float mass_visc, float gx, float gy, float gz, float dt, float vmax,
            __global const float *colliders, int ncolliders, float bx0, float by0, float bz0,
@@ -181,8 +212,7 @@ sph_forces(__global const float *state, int stride, int n, __global const int *c
   if (i >= n)
     return;
   __global const float *px = state, *py = state + stride, *pz = state + 2 * stride;
-  __global const float *vx = state + 3 * stride, *vy = state + 4 * stride,
-                       *vz = state + 5 * stride;
+  __global const float *vx = state + 3 * stride, *vy = state + 4 * stride, *vz = state + 5 * stride;
   float xi = px[i], yi = py[i], zi = pz[i];
   float uxi = vx[i], uyi = vy[i], uzi = vz[i];
   float pi_r2 = pr2[i], inv_rho_i = inv_rho[i];
@@ -229,16 +259,23 @@ sph_forces(__global const float *state, int stride, int n, __global const int *c
   float kv = viscosity * drag * inv_rho_i * inv_rho_i;
   float3 fp = (float3)(sph_sum8(fpx), sph_sum8(fpy), sph_sum8(fpz));
   float3 fv = (float3)(sph_sum8(fvx), sph_sum8(fvy), sph_sum8(fvz));
-  float3 a = (float3)(gx, gy, gz) + pi_r2 * fw - kv * (float3)(uxi, uyi, uzi) +
-             mass_spiky * fp + inv_rho_i * mass_visc * fv;
+  float3 a = (float3)(gx, gy, gz) + pi_r2 * fw - kv * (float3)(uxi, uyi, uzi) + mass_spiky * fp +
+             inv_rho_i * mass_visc * fv;
   float3 v = (float3)(uxi, uyi, uzi) + dt * a;
   /* The speed limit (the sound speed) keeps a broken state from blowing up. */
   float speed = length(v);
   if (speed > vmax)
     v *= vmax / speed;
   float3 x = (float3)(xi, yi, zi) + dt * v;
-  for (int k = 0; k < ncolliders; k++)
-    sph_collide(colliders + k * SPHC_STRIDE, &x, &v);
+  /* Where two colliders meet (a sphere resting on a floor), pushing out of one can push into
+   * the other: the pushes repeat until a round moves nothing, which ends on the seam. */
+  for (int round = 0; round < SPH_COLLIDE_ROUNDS; round++) {
+    int moved = 0;
+    for (int k = 0; k < ncolliders; k++)
+      moved |= sph_collide(colliders + k * SPHC_STRIDE, &x, &v);
+    if (!moved)
+      break;
+  }
   /* The tank comes last, so nothing can leave it: clamp, and stop the motion into a wall. */
   float3 lo = (float3)(bx0, by0, bz0), hi = (float3)(bx1, by1, bz1);
   if (x.x <= lo.x && v.x < 0.0f)

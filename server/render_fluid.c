@@ -4,38 +4,113 @@
  * objects.
  */
 #include <math.h>
+#include <pthread.h>
 
 #include "render_internal.h"
 
 /* ---- Fluid --------------------------------------------------------------------------------- */
 
-/* The range of cells [lo, hi] on each axis that the ball of radius 'h' about 'p' may reach. */
-static void fluid_reach(const vfx_fluid_t *fl, const float *p, float h, int lo[3], int hi[3]) {
-  for (int a = 0; a < 3; a++) {
-    double l = floor((p[a] - h - fl->origin[a]) / fl->cell);
-    double u = floor((p[a] + h - fl->origin[a]) / fl->cell);
-    lo[a] = l < 0 ? 0 : l >= fl->dims[a] ? fl->dims[a] - 1 : (int)l;
-    hi[a] = u < 0 ? 0 : u >= fl->dims[a] ? fl->dims[a] - 1 : (int)u;
+#define FLUID_THREAD_MIN 8192 /* Particles in a half below which the build stays on one thread. */
+#define FLUID_AXIS_MAX 8      /* Most cells a particle reaches along one axis (cells >= h / 3). */
+
+/*
+ * Along axis 'a', the first cell '*lo' of the run of at most FLUID_AXIS_MAX cells that the
+ * ball of radius 'h' about coordinate 'p' reaches, and per cell of it the squared distance from
+ * p to the cell's slab (0 inside). Returns the number of cells.
+ */
+static int fluid_axis(const vfx_fluid_t *fl, float p, double h, int a, int *lo, double *d2) {
+  double cell = fl->cell, o = fl->origin[a];
+  double l = floor((p - h - o) / cell), u = floor((p + h - o) / cell);
+  int n = fl->dims[a];
+  int first = l < 0 ? 0 : l >= n ? n - 1 : (int)l;
+  int last = u < 0 ? 0 : u >= n ? n - 1 : (int)u;
+  if (last - first >= FLUID_AXIS_MAX)
+    last = first + FLUID_AXIS_MAX - 1;
+  for (int c = first; c <= last; c++) {
+    double s0 = o + c * cell, s1 = s0 + cell;
+    double e = p < s0 ? s0 - p : p > s1 ? p - s1 : 0;
+    d2[c - first] = e * e;
   }
+  *lo = first;
+  return last - first + 1;
 }
 
-/* Whether the ball of radius 'h' about 'p' touches cell (i, j, k), boundary included, with a
- * margin for the kernel's float rounding (listing one particle too many costs nothing). */
-static int fluid_touches(const vfx_fluid_t *fl, const float *p, double h2, int i, int j, int k) {
-  int c[3] = {i, j, k};
-  double d2 = 0;
-  for (int a = 0; a < 3; a++) {
-    double lo = fl->origin[a] + (double)c[a] * fl->cell, hi = lo + fl->cell;
-    double e = p[a] < lo ? lo - p[a] : p[a] > hi ? p[a] - hi : 0;
-    d2 += e * e;
+/*
+ * One pass of the grid build over particles [i0, i1) of 'fd': for every cell c whose box the
+ * ball of radius h about a particle touches (boundary included, with a margin for the kernel's
+ * float rounding: listing one particle too many costs nothing), either counts it in cur[c]
+ * ('out' NULL) or writes the particle at entry cur[c]++ of the lists in 'out' (x, y and z
+ * sections 'stride' apart). Particles with a non-finite coordinate are left out.
+ */
+typedef struct {
+  const vfx_fluid_t *fl;
+  const rfluid_t *fd;
+  uint32_t i0, i1;
+  int32_t *cur;
+  float *out;
+  size_t stride;
+} fluid_scan_t;
+
+static void *fluid_scan(void *arg) {
+  const fluid_scan_t *w = arg;
+  const vfx_fluid_t *fl = w->fl;
+  float h = w->fd->h, *out = w->out;
+  double h2 = (double)h * h * 1.0002 + 1e-12;
+  size_t stride = w->stride;
+  for (uint32_t i = w->i0; i < w->i1; i++) {
+    const float *p = w->fd->positions + 3 * (size_t)i;
+    if (!isfinite(p[0]) || !isfinite(p[1]) || !isfinite(p[2]))
+      continue;
+    int x0, y0, z0;
+    double dx2[FLUID_AXIS_MAX], dy2[FLUID_AXIS_MAX], dz2[FLUID_AXIS_MAX];
+    int nx = fluid_axis(fl, p[0], h, 0, &x0, dx2);
+    int ny = fluid_axis(fl, p[1], h, 1, &y0, dy2);
+    int nz = fluid_axis(fl, p[2], h, 2, &z0, dz2);
+    for (int k = 0; k < nz; k++) {
+      if (dz2[k] > h2)
+        continue;
+      for (int j = 0; j < ny; j++) {
+        double dyz = dz2[k] + dy2[j];
+        if (dyz > h2)
+          continue;
+        size_t row = ((size_t)(z0 + k) * fl->dims[1] + (size_t)(y0 + j)) * fl->dims[0] + x0;
+        for (int q = 0; q < nx; q++) {
+          if (dyz + dx2[q] > h2)
+            continue;
+          int32_t *c = w->cur + row + q;
+          if (out != NULL) {
+            size_t at = (size_t)*c;
+            out[at] = p[0];
+            out[stride + at] = p[1];
+            out[2 * stride + at] = p[2];
+          }
+          (*c)++;
+        }
+      }
+    }
   }
-  return d2 <= h2;
+  return NULL;
+}
+
+/* Runs the two halves of a pass: the second on a thread of its own when there are enough
+ * particles to pay for it (and when the thread starts), the first here. */
+static void fluid_scan_both(fluid_scan_t w[2]) {
+  pthread_t t;
+  int threaded =
+      w[1].i1 - w[1].i0 >= FLUID_THREAD_MIN && pthread_create(&t, NULL, fluid_scan, &w[1]) == 0;
+  fluid_scan(&w[0]);
+  if (threaded)
+    pthread_join(t, NULL);
+  else
+    fluid_scan(&w[1]);
 }
 
 /*
  * Builds the fluid grid of vfx_fluid_t (common.h) in r->host_fcells and r->host_fpos by a
- * counting sort, and fills 'fl'. Particles with a non-finite coordinate are left out. Returns
- * the number of cells (0 when no particle is left), or -1 when out of memory.
+ * counting sort in two passes over the particles, each visiting only the cells its ball
+ * touches (boundary included, with a margin for the kernel's float rounding: listing one
+ * particle too many costs nothing), and fills 'fl'. Particles with a non-finite coordinate are
+ * left out. Returns the number of cells (0 when no particle is left), or -1 when out of memory.
  */
 static long fluid_build(renderer_t *r, const rfluid_t *fd, vfx_fluid_t *fl) {
   float h = fd->h, lo[3] = {INFINITY, INFINITY, INFINITY},
@@ -54,7 +129,7 @@ static long fluid_build(renderer_t *r, const rfluid_t *fd, vfx_fluid_t *fl) {
   if (used == 0)
     return 0;
   /* Cells of side h, or larger when the particles spread too far for that many cells: a cell
-   * lists every particle within h of it whatever its size, so any side >= h is correct. */
+   * lists every particle within h of it whatever its size, so any side is correct. */
   double ext[3], cell = h;
   for (int a = 0; a < 3; a++)
     ext[a] = (double)hi[a] - lo[a] + 2.0 * h;
@@ -72,52 +147,40 @@ static long fluid_build(renderer_t *r, const rfluid_t *fd, vfx_fluid_t *fl) {
   fl->cell = (float)cell;
   fl->inv_cell = (float)(1.0 / cell);
 
-  if (grow_staging((void **)&r->host_fcells, &r->host_fcells_cap, 2 * ncell, sizeof(int32_t)))
+  /* Cell pairs (start, count) for the device, and two arrays of counts, then cursors, one
+   * per half of the particles: the second half's entries of a list follow the first's, so
+   * the lists come out in particle order however the halves are run. */
+  if (grow_staging((void **)&r->host_fcells, &r->host_fcells_cap, 4 * ncell, sizeof(int32_t)))
     return -1;
-  int32_t *cells = r->host_fcells;
-  memset(cells, 0, 2 * ncell * sizeof(int32_t));
-  double h2 = (double)h * h * 1.0002 + 1e-12;
-  int a[3], b[3];
-  for (int pass = 0; pass < 2; pass++) {
-    if (pass == 1) {
-      /* Starts of the lists, each padded to a multiple of 8; counts restart for the fill. */
-      size_t at = 0;
-      for (size_t c = 0; c < ncell; c++) {
-        int32_t m = cells[2 * c + 1];
-        cells[2 * c] = (int32_t)at;
-        cells[2 * c + 1] = 0;
-        at += (size_t)(m + 7) & ~(size_t)7;
-      }
-      size_t stride = at ? at : 8;
-      if (stride > INT32_MAX / 3 ||
-          grow_staging((void **)&r->host_fpos, &r->host_fpos_cap, 3 * stride, sizeof(float)))
-        return -1;
-      for (size_t i = 0; i < 3 * stride; i++)
-        r->host_fpos[i] = FLUID_PAD;
-      fl->stride = (int)stride;
-    }
-    for (uint32_t i = 0; i < fd->count; i++) {
-      const float *p = fd->positions + 3 * (size_t)i;
-      if (!isfinite(p[0]) || !isfinite(p[1]) || !isfinite(p[2]))
-        continue;
-      fluid_reach(fl, p, h, a, b);
-      for (int k = a[2]; k <= b[2]; k++) {
-        for (int j = a[1]; j <= b[1]; j++) {
-          for (int q = a[0]; q <= b[0]; q++) {
-            if (!fluid_touches(fl, p, h2, q, j, k))
-              continue;
-            size_t c = ((size_t)k * fl->dims[1] + j) * fl->dims[0] + q;
-            if (pass == 1) {
-              size_t at = (size_t)cells[2 * c] + (size_t)cells[2 * c + 1];
-              r->host_fpos[at] = p[0];
-              r->host_fpos[fl->stride + at] = p[1];
-              r->host_fpos[2 * (size_t)fl->stride + at] = p[2];
-            }
-            cells[2 * c + 1]++;
-          }
-        }
-      }
-    }
+  int32_t *cells = r->host_fcells, *cur0 = cells + 2 * ncell, *cur1 = cur0 + ncell;
+  memset(cur0, 0, 2 * ncell * sizeof(int32_t));
+  uint32_t half = fd->count / 2;
+  fluid_scan_t w[2] = {{fl, fd, 0, half, cur0, NULL, 0}, {fl, fd, half, fd->count, cur1, NULL, 0}};
+  fluid_scan_both(w);
+  /* Starts of the lists, each padded to a multiple of 8. */
+  size_t at = 0;
+  for (size_t c = 0; c < ncell; c++) {
+    int32_t m0 = cur0[c], m = m0 + cur1[c];
+    cells[2 * c] = (int32_t)at;
+    cells[2 * c + 1] = m;
+    cur0[c] = (int32_t)at;
+    cur1[c] = (int32_t)at + m0;
+    at += (size_t)(m + 7) & ~(size_t)7;
+  }
+  size_t stride = at; /* > 0: every particle lists in its own cell. */
+  if (stride > INT32_MAX / 3 ||
+      grow_staging((void **)&r->host_fpos, &r->host_fpos_cap, 3 * stride, sizeof(float)))
+    return -1;
+  float *out = r->host_fpos;
+  fl->stride = (int)stride;
+  for (int k = 0; k < 2; k++)
+    w[k].out = out, w[k].stride = stride;
+  fluid_scan_both(w);
+  /* The padding after each list, at FLUID_PAD where the field is zero. */
+  for (size_t c = 0; c < ncell; c++) {
+    size_t at = (size_t)cells[2 * c], m = (size_t)cells[2 * c + 1];
+    for (size_t e = at + m; e < at + ((m + 7) & ~(size_t)7); e++)
+      out[e] = out[stride + e] = out[2 * stride + e] = FLUID_PAD;
   }
   return (long)ncell;
 }
@@ -148,7 +211,7 @@ int render_pass_fluid(renderer_t *r, const render_scene_t *scene, int *ran, char
   fl.inv_h = 1.0f / fd->h;
   fl.threshold = fd->threshold;
   fl.min_step = fd->h / 2000;
-  fl.tol = fd->h * 1e-4f;
+  fl.tol = fd->h * 1e-3f;
   double ior = isfinite(fd->ior) && fd->ior > 0 ? fd->ior : 1.33;
   double f0 = (ior - 1) / (ior + 1);
   fl.f0 = (float)(f0 * f0);

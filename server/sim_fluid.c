@@ -17,10 +17,12 @@
 #define LOCAL 64             /* SPH_LOCAL of kernels/sph.cl. */
 #define MAX_CELLS (1u << 20) /* The grid's cells grow beyond the support radius past this. */
 #define MAX_COLLIDERS 256    /* Opaque objects that collide; the rest are ignored. */
-#define COL_STRIDE 16        /* SPHC_STRIDE of kernels/sph.cl. */
+#define COL_STRIDE 20        /* SPHC_STRIDE of kernels/sph.cl. */
+#define COL_PLANES 1         /* SPHC_PLANES: a tetrahedron's four planes start here. */
 #define COL_SPHERE 0
 #define COL_BOX 1
 #define COL_PLANE 2
+#define COL_TETRA 3
 #define WALL_N 64 /* SPH_WALL_N of kernels/sph.cl. */
 
 /* The spiky kernel's factor: W(r) = SPIKY(h) (h - r)³ for r < h. */
@@ -412,6 +414,35 @@ static void rotation(const float deg[3], double r[3][3]) {
   r[2][0] = -sb, r[2][1] = cb * sa, r[2][2] = cb * ca;
 }
 
+/*
+ * The four face planes of the tetrahedron object 'o' (render_scene.h: the regular tetrahedron
+ * of circumradius 0.5 with a vertex at +y, scaled, rotated by 'r', moved to its position) into
+ * 'out' as (unit outward normal, offset) in the world, the solid being n . x < offset. Before
+ * the scale, the face opposite vertex v_k (|v_k| = 0.5) is -2 v_k . u = 1/6; a point q = S u
+ * of the scaled object satisfies (S^-1 (-2 v_k)) . q = 1/6.
+ */
+static void tetra_planes(const robject_t *o, const double r[3][3], float *out) {
+  double rr = sqrt(2.0) / 3, vy = -1.0 / 6, s120 = sqrt(3.0) / 2;
+  const double v[4][3] = {
+      {0, 0.5, 0}, {0, vy, rr}, {rr * s120, vy, -0.5 * rr}, {-rr * s120, vy, -0.5 * rr}};
+  for (int k = 0; k < 4; k++) {
+    double m[3], len = 0;
+    for (int i = 0; i < 3; i++) {
+      m[i] = -2 * v[k][i] / o->scale[i];
+      len += m[i] * m[i];
+    }
+    len = sqrt(len);
+    double n[3], off = 1.0 / 6 / len;
+    for (int i = 0; i < 3; i++)
+      n[i] = (r[i][0] * m[0] + r[i][1] * m[1] + r[i][2] * m[2]) / len;
+    for (int i = 0; i < 3; i++) {
+      out[4 * k + i] = (float)n[i];
+      off += n[i] * o->position[i];
+    }
+    out[4 * k + 3] = (float)off;
+  }
+}
+
 int fluid_sim_set_colliders(fluid_sim_t *s, const robject_t *objs, int n, char *err,
                             size_t errlen) {
   if (n < 0 || (n > 0 && objs == NULL))
@@ -420,10 +451,11 @@ int fluid_sim_set_colliders(fluid_sim_t *s, const robject_t *objs, int n, char *
   int count = 0;
   for (int k = 0; k < n && count < MAX_COLLIDERS; k++) {
     const robject_t *o = &objs[k];
-    int kind = o->shape == SHAPE_SPHERE  ? COL_SPHERE
-               : o->shape == SHAPE_BOX   ? COL_BOX
-               : o->shape == SHAPE_PLANE ? COL_PLANE
-                                         : -1;
+    int kind = o->shape == SHAPE_SPHERE        ? COL_SPHERE
+               : o->shape == SHAPE_BOX         ? COL_BOX
+               : o->shape == SHAPE_PLANE       ? COL_PLANE
+               : o->shape == SHAPE_TETRAHEDRON ? COL_TETRA
+                                               : -1;
     if (kind < 0)
       continue;
     if (!finite3(o->position) || !finite3(o->rotation) || !finite3(o->scale))
@@ -437,6 +469,10 @@ int fluid_sim_set_colliders(fluid_sim_t *s, const robject_t *objs, int n, char *
     double r[3][3];
     rotation(o->rotation, r);
     c[0] = (float)kind;
+    if (kind == COL_TETRA) {
+      tetra_planes(o, r, c + COL_PLANES);
+      continue;
+    }
     for (int i = 0; i < 3; i++) {
       c[1 + i] = o->position[i];
       c[13 + i] = 0.5f * fabsf(o->scale[i]);

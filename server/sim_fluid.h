@@ -95,10 +95,10 @@ void fluid_sim_get_particles(const fluid_sim_t *sim, float *pos, float *vel);
 uint32_t fluid_sim_count(const fluid_sim_t *sim);
 
 /*
- * Sets the colliders from the scene's opaque objects: spheres (ellipsoids when scaled), boxes
- * and planes, placed as render_scene.h says; tetrahedra and meshes do not collide, and past the
- * first 256 that do, the rest are ignored. The array is copied. Returns 0, or -1 with a message if
- * an object's numbers are unusable.
+ * Sets the colliders from the scene's opaque objects: spheres (ellipsoids when scaled), boxes,
+ * planes and tetrahedra (their four face planes), placed as render_scene.h says; meshes do not
+ * collide, and past the first 256 that do, the rest are ignored. The array is copied. Returns 0, or
+ * -1 with a message if an object's numbers are unusable.
  */
 int fluid_sim_set_colliders(fluid_sim_t *sim, const robject_t *objs, int n, char *err,
                             size_t errlen);

@@ -7,7 +7,11 @@
  * after two of warm-up. Prints a markdown table with the paper's figures beside, and the
  * command line.
  *
- *   bench_render_fluid [--runs N] [--device D] [--kernels DIR] [--images DIR]
+ *   bench_render_fluid [--runs N] [--only PARTICLES SIZE] [--device D] [--kernels DIR]
+ *                      [--images DIR]
+ *
+ * --only renders just that row of the table (PARTICLES one of 4096, 16384, 65536; SIZE one of
+ * 128, 256, 512).
  *
  * --images DIR renders fluid_block.png (the 4096 block, 512^2) and fluid_drops.png (a splash of
  * random drops over a floor) into DIR and exits.
@@ -161,6 +165,7 @@ static int write_images(renderer_t *r, const char *dir) {
 int main(int argc, char **argv) {
   int runs = 11;
   const char *images = NULL;
+  long only_n = 0, only_side = 0;
   renderer_opts_t opts = {0};
   for (int i = 1; i < argc; i++) {
     if (strcmp(argv[i], "--runs") == 0 && i + 1 < argc)
@@ -169,10 +174,14 @@ int main(int argc, char **argv) {
       opts.device = argv[++i];
     else if (strcmp(argv[i], "--kernels") == 0 && i + 1 < argc)
       opts.kernels_dir = argv[++i];
+    else if (strcmp(argv[i], "--only") == 0 && i + 2 < argc)
+      only_n = atol(argv[i + 1]), only_side = atol(argv[i + 2]), i += 2;
     else if (strcmp(argv[i], "--images") == 0 && i + 1 < argc)
       images = argv[++i];
     else {
-      fprintf(stderr, "usage: %s [--runs N] [--device D] [--kernels DIR] [--images DIR]\n",
+      fprintf(stderr,
+              "usage: %s [--runs N] [--only PARTICLES SIZE] [--device D] [--kernels DIR] "
+              "[--images DIR]\n",
               argv[0]);
       return 2;
     }
@@ -196,12 +205,16 @@ int main(int argc, char **argv) {
   static const double paper[3][3] = {{0, 0, 0}, {35, 21, 7}, {11, 10, 3}};
   double fps[3][3], fluid_ms[3][3];
   for (int c = 0; c < 3; c++) {
+    if (only_n && only_n != counts[c])
+      continue;
     float centre[3], rad;
     float *pos = block(counts[c], centre, &rad);
     if (pos == NULL)
       return 1;
     render_scene_t s = scene_for(pos, counts[c], centre, rad);
     for (int k = 0; k < 3; k++) {
+      if (only_side && only_side != sides[k])
+        continue;
       render_params_t p = {.width = (uint32_t)sides[k],
                            .height = (uint32_t)sides[k],
                            .format = PROTO_FMT_RGBA8,
@@ -237,6 +250,8 @@ int main(int argc, char **argv) {
   printf("| --- | --- | --- | --- | --- |\n");
   for (int k = 0; k < 3; k++) {
     for (int c = 0; c < 3; c++) {
+      if ((only_n && only_n != counts[c]) || (only_side && only_side != sides[k]))
+        continue;
       char ref[16] = "-";
       if (paper[k][c] > 0)
         snprintf(ref, sizeof ref, "%.0f", paper[k][c]);
