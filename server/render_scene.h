@@ -127,6 +127,7 @@ typedef struct rvolume {
   density_grid_t *grid; /* VOLUME_GRID: a counted reference; NULL otherwise. */
   uint32_t seed;        /* VOLUME_NOISE: the noise's seed. */
   float noise_scale;    /* VOLUME_NOISE: feature size, world units. */
+  float phase_g;        /* Henyey-Greenstein asymmetry in (-1, 1); 0 scatters evenly. */
 } rvolume_t;
 
 typedef struct render_scene {

@@ -1,0 +1,352 @@
+/*
+ * The volume pass (SPEC §5.3 and the rendering half of §5.4) and the shadow map it reads.
+ *
+ * volumes: every pixel's camera ray is sampled, volume by volume (the host orders them by
+ * distance), only between where it enters the volume's tight box and min(where it leaves it,
+ * the opaque depth of the objects pass): N samples at the midpoints of N equal segments of that
+ * interval (paper 002, eqs. 2-4), so neither the box's faces nor the objects cutting the volume
+ * can produce slice stripes. Front to back (eqs. 5-7, 9), a sample of extinction sigma over a
+ * segment of length dt has opacity 1 - exp(-sigma dt) exactly, rather than the paper's linear
+ * correction (eq. 8). Each sample scatters the light once: the light's colour, times the
+ * transmittance from the sample towards the light through the volume (a precomputed light
+ * grid), times the fraction of the light the opaque objects let through (the shadow map), times
+ * a Henyey-Greenstein phase; plus the ambient term. The march stops once every ray of the
+ * packet is nearly opaque, and the light and shadow lookups are skipped where every ray of the
+ * packet sees zero density.
+ *
+ * Light shafts (paper 002, §3.3): the shadow term of sample i is the mean of four shadow-map
+ * lookups, at the segment boundaries t_(i-1/2) and t_(i+1/2) either side of the ray by half a
+ * pixel's footprint across the view and the light (eq. 10); each lookup is itself a bilinear
+ * percentage-closer filter of four texels. Consecutive samples share a boundary, so a sample
+ * costs two new lookups. The shaft's edge thus moves continuously with the pixel and the
+ * sample spacing instead of stepping from texel to texel or sample to sample.
+ *
+ * Like the objects kernel, a work-item shades VOL_PACKET adjacent pixels of a row in the lanes
+ * of a float8, so that PoCL's code is vector code; grid lookups gather through private arrays.
+ */
+#include "common.h"
+#include "volume.h"
+
+typedef float8 vf;
+typedef int8 vi;
+
+#define VOL_LANES ((vf)(0.5f, 1.5f, 2.5f, 3.5f, 4.5f, 5.5f, 6.5f, 7.5f))
+
+/* p[idx] per lane. */
+static inline vf vol_gather(__global const float *restrict p, vi idx) {
+  int at[8];
+  float out[8];
+  vstore8(idx, 0, at);
+  for (int l = 0; l < 8; l++)
+    out[l] = p[at[l]];
+  return vload8(0, out);
+}
+
+/*
+ * The trilinear interpolation of grid 'g' (n[0] x n[1] x n[2], x fastest) at grid coordinates
+ * (x, y, z), in which voxel i's centre is at i; coordinates are clamped to the centres of the
+ * edge voxels, so the edge values extend to the box's faces.
+ */
+static inline vf vol_trilinear(__global const float *restrict g, int nx, int ny, int nz, vf x,
+                               vf y, vf z) {
+  x = clamp(x, 0.0f, (float)(nx - 1));
+  y = clamp(y, 0.0f, (float)(ny - 1));
+  z = clamp(z, 0.0f, (float)(nz - 1));
+  vf fx = floor(x), fy = floor(y), fz = floor(z);
+  vi ix = convert_int8(fx), iy = convert_int8(fy), iz = convert_int8(fz);
+  vi sx = select((vi)1, (vi)0, ix >= nx - 1);
+  vi sy = select((vi)nx, (vi)0, iy >= ny - 1);
+  vi sz = select((vi)(nx * ny), (vi)0, iz >= nz - 1);
+  fx = x - fx, fy = y - fy, fz = z - fz;
+  vi b = ix + nx * (iy + ny * iz);
+  vf c00 = mix(vol_gather(g, b), vol_gather(g, b + sx), fx);
+  vf c10 = mix(vol_gather(g, b + sy), vol_gather(g, b + sy + sx), fx);
+  vf c01 = mix(vol_gather(g, b + sz), vol_gather(g, b + sz + sx), fx);
+  vf c11 = mix(vol_gather(g, b + sz + sy), vol_gather(g, b + sz + sy + sx), fx);
+  return mix(mix(c00, c10, fy), mix(c01, c11, fy), fz);
+}
+
+/*
+ * The fraction of four shadow-map texels around texel position (s, r) whose stored depth is
+ * not nearer the light than 'z' (minus the bias), weighted bilinearly: 1 lit, 0 shadowed.
+ */
+static inline vf vol_pcf(__global const float *restrict smap, int pitch, const vfx_shadow_t *sh,
+                         vf s, vf r, vf z) {
+  vf x = s - 0.5f, y = r - 0.5f;
+  vf fx = floor(x), fy = floor(y);
+  float top = (float)(sh->size - 1);
+  vi i0 = convert_int8(clamp(fx, 0.0f, top)), i1 = convert_int8(clamp(fx + 1.0f, 0.0f, top));
+  vi j0 = convert_int8(clamp(fy, 0.0f, top)), j1 = convert_int8(clamp(fy + 1.0f, 0.0f, top));
+  fx = x - fx, fy = y - fy;
+  vf zb = z - sh->bias;
+  vf l00 = select((vf)0.0f, (vf)1.0f, zb <= vol_gather(smap, j0 * pitch + i0));
+  vf l10 = select((vf)0.0f, (vf)1.0f, zb <= vol_gather(smap, j0 * pitch + i1));
+  vf l01 = select((vf)0.0f, (vf)1.0f, zb <= vol_gather(smap, j1 * pitch + i0));
+  vf l11 = select((vf)0.0f, (vf)1.0f, zb <= vol_gather(smap, j1 * pitch + i1));
+  return mix(mix(l00, l10, fx), mix(l01, l11, fx), fy);
+}
+
+/*
+ * The shadow term at distance 't' along the packet's rays: the mean of the filtered lookups
+ * half a pixel either side of the ray. The lookup position is linear in t: (s0 + t ds, r0 + t
+ * dr, z0 + t dz) on the ray, and (os, or) per unit of t the half-pixel offset across it.
+ */
+static inline vf vol_shadow(__global const float *restrict smap, int pitch, const vfx_shadow_t *sh,
+                            vf t, vf s0, vf ds, vf r0, vf dr, vf z0, vf dz, vf os, vf or_) {
+  if (!sh->enabled)
+    return (vf)1.0f;
+  vf s = s0 + t * ds, r = r0 + t * dr, z = z0 + t * dz;
+  vf ts = t * os, tr = t * or_;
+  return 0.5f * (vol_pcf(smap, pitch, sh, s + ts, r + tr, z) +
+                 vol_pcf(smap, pitch, sh, s - ts, r - tr, z));
+}
+
+/*
+ * One packet of VOL_PACKET pixels per work-item at pixel (VOL_PACKET * global x, global y),
+ * over the padded buffers of the frame 'f' that the objects pass set up. 'vols' holds 'nvol'
+ * records (volume.h) nearest first, 'data' their grids; the result is composited over
+ * 'linear' (colour and alpha) in place.
+ */
+__kernel void volumes(vfx_frame_t f, vfx_shadow_t sh, __global const float *restrict vols,
+                      int nvol, __global const float *restrict data,
+                      __global const float *restrict smap, int smap_pitch,
+                      __global const float *restrict depth, __global float *restrict linear) {
+  int x0 = VOL_PACKET * get_global_id(0), y = get_global_id(1);
+  int o = y * f.pitch + x0;
+
+  float ex = f.eye[0], ey = f.eye[1], ez = f.eye[2];
+  vf px = (float)x0 + VOL_LANES;
+  float py = y + 0.5f;
+  vf dx = f.base[0] + px * f.step_x[0] + py * f.step_y[0];
+  vf dy = f.base[1] + px * f.step_x[1] + py * f.step_y[1];
+  vf dz = f.base[2] + px * f.step_x[2] + py * f.step_y[2];
+  vf il = 1.0f / sqrt(dx * dx + dy * dy + dz * dz);
+  dx *= il, dy *= il, dz *= il;
+  vf tend = fmin(vload8(0, depth + o), f.far_);
+
+  float lx = f.light_dir[0], ly = f.light_dir[1], lz = f.light_dir[2];
+  /* The shadow map's coordinates of the rays: positions in texels and depth in world units,
+   * each linear in t; and the half-pixel offset across the view and the light (eq. 10), whose
+   * length per unit of t is half a pixel's footprint at unit distance. */
+  float pix = 0.5f * length((float3)(f.step_x[0], f.step_x[1], f.step_x[2]));
+  float ox = ex - sh.origin[0], oy = ey - sh.origin[1], oz = ez - sh.origin[2];
+  vf s0 = (vf)((ox * sh.u[0] + oy * sh.u[1] + oz * sh.u[2]) * sh.inv_texel);
+  vf r0 = (vf)((ox * sh.v[0] + oy * sh.v[1] + oz * sh.v[2]) * sh.inv_texel);
+  vf z0 = (vf)(ox * sh.w[0] + oy * sh.w[1] + oz * sh.w[2]);
+  vf ds = (dx * sh.u[0] + dy * sh.u[1] + dz * sh.u[2]) * sh.inv_texel;
+  vf dr = (dx * sh.v[0] + dy * sh.v[1] + dz * sh.v[2]) * sh.inv_texel;
+  vf zd = dx * sh.w[0] + dy * sh.w[1] + dz * sh.w[2];
+  vf nx = dy * lz - dz * ly, ny = dz * lx - dx * lz, nz = dx * ly - dy * lx;
+  vf nl = sqrt(nx * nx + ny * ny + nz * nz);
+  /* A ray along the light has no preferred side: any direction across it will do. */
+  vi along = nl < 1e-6f;
+  nl = pix * sh.inv_texel / fmax(nl, 1e-6f);
+  nx = select(nx * nl, (vf)(sh.u[0] * pix * sh.inv_texel), along);
+  ny = select(ny * nl, (vf)(sh.u[1] * pix * sh.inv_texel), along);
+  nz = select(nz * nl, (vf)(sh.u[2] * pix * sh.inv_texel), along);
+  vf os = nx * sh.u[0] + ny * sh.u[1] + nz * sh.u[2];
+  vf or_ = nx * sh.v[0] + ny * sh.v[1] + nz * sh.v[2];
+  vf cos_th = dx * lx + dy * ly + dz * lz; /* Cosine of the scattering angle. */
+
+  vf tr = 1.0f, cr = 0.0f, cg = 0.0f, cb = 0.0f;
+  for (int v = 0; v < nvol; v++) {
+    __global const float *rec = vols + v * VOL_STRIDE;
+    /* The rays' interval inside the tight box, clipped to [near, opaque depth]. */
+    vf t0 = f.near_, t1 = tend;
+    vf e[3] = {(vf)ex, (vf)ey, (vf)ez}, d[3] = {dx, dy, dz};
+    for (int k = 0; k < 3; k++) {
+      vf inv = 1.0f / d[k];
+      vf ta = (rec[VOL_TMIN + k] - e[k]) * inv, tb = (rec[VOL_TMAX + k] - e[k]) * inv;
+      /* A ray parallel to the slab is inside it everywhere or nowhere. */
+      vi par = d[k] == 0.0f;
+      vi in = (e[k] >= rec[VOL_TMIN + k]) & (e[k] <= rec[VOL_TMAX + k]);
+      ta = select(ta, select((vf)INFINITY, (vf)-INFINITY, in), par);
+      tb = select(tb, select((vf)-INFINITY, (vf)INFINITY, in), par);
+      t0 = fmax(t0, fmin(ta, tb));
+      t1 = fmin(t1, fmax(ta, tb));
+    }
+    vi act = (t0 < t1) & (tr > VOL_T_MIN);
+    if (!any(act))
+      continue;
+    int n = as_int(rec[VOL_SAMPLES]);
+    vf dt = select((vf)0.0f, (t1 - t0) / (float)n, act);
+    t0 = select((vf)0.0f, t0, act);
+
+    int gx = as_int(rec[VOL_DIMS]), gy = as_int(rec[VOL_DIMS + 1]), gz = as_int(rec[VOL_DIMS + 2]);
+    int hx = as_int(rec[VOL_LDIMS]), hy = as_int(rec[VOL_LDIMS + 1]),
+        hz = as_int(rec[VOL_LDIMS + 2]);
+    __global const float *grid = data + as_int(rec[VOL_OFF]);
+    __global const float *lgrid = data + as_int(rec[VOL_LOFF]);
+    /* Grid coordinates along the ray, linear in t: voxel i's centre is at i. */
+    float bx = ex - rec[VOL_BMIN], by = ey - rec[VOL_BMIN + 1], bz = ez - rec[VOL_BMIN + 2];
+    vf g0x = bx * rec[VOL_INV] - 0.5f, g0y = by * rec[VOL_INV + 1] - 0.5f,
+       g0z = bz * rec[VOL_INV + 2] - 0.5f;
+    vf gdx = dx * rec[VOL_INV], gdy = dy * rec[VOL_INV + 1], gdz = dz * rec[VOL_INV + 2];
+    vf h0x = bx * rec[VOL_LINV] - 0.5f, h0y = by * rec[VOL_LINV + 1] - 0.5f,
+       h0z = bz * rec[VOL_LINV + 2] - 0.5f;
+    vf hdx = dx * rec[VOL_LINV], hdy = dy * rec[VOL_LINV + 1], hdz = dz * rec[VOL_LINV + 2];
+
+    float sigma = rec[VOL_SIGMA], g = rec[VOL_PHASE_G];
+    /* Henyey-Greenstein, scaled by 4 pi so that an isotropic medium (g = 0) has phase 1. */
+    vf hg = 1.0f + g * g - 2.0f * g * cos_th;
+    vf phase = (1.0f - g * g) / (hg * sqrt(hg));
+    vf lr = f.light_rgb[0] * phase, lg = f.light_rgb[1] * phase, lb = f.light_rgb[2] * phase;
+    float ar = rec[VOL_ALBEDO], ag = rec[VOL_ALBEDO + 1], ab = rec[VOL_ALBEDO + 2];
+
+    vf sprev = 0.0f;
+    int have_prev = 0;
+    for (int i = 0; i < n; i++) {
+      vf t = t0 + ((float)i + 0.5f) * dt;
+      vf sig = sigma * vol_trilinear(grid, gx, gy, gz, g0x + t * gdx, g0y + t * gdy, g0z + t * gdz);
+      sig = select((vf)0.0f, sig, act);
+      if (!any(sig > 0.0f)) {
+        have_prev = 0;
+        continue;
+      }
+      vf hdt = 0.5f * dt;
+      if (!have_prev)
+        sprev = vol_shadow(smap, smap_pitch, &sh, t - hdt, s0, ds, r0, dr, z0, zd, os, or_);
+      vf snext = vol_shadow(smap, smap_pitch, &sh, t + hdt, s0, ds, r0, dr, z0, zd, os, or_);
+      vf shade = 0.5f * (sprev + snext);
+      sprev = snext;
+      have_prev = 1;
+      vf tl = vol_trilinear(lgrid, hx, hy, hz, h0x + t * hdx, h0y + t * hdy, h0z + t * hdz);
+      vf direct = tl * shade;
+      vf a = 1.0f - exp(-sig * dt);
+      vf w = tr * a;
+      cr += w * ar * fma(lr, direct, f.ambient);
+      cg += w * ag * fma(lg, direct, f.ambient);
+      cb += w * ab * fma(lb, direct, f.ambient);
+      tr -= w;
+      if (all((tr <= VOL_T_MIN) | ~act))
+        break;
+    }
+  }
+
+  /* Over what the earlier passes drew (eq. 9): C = T * behind + the volume's light. */
+  float16 p0 = vload16(0, linear + 4 * o), p1 = vload16(0, linear + 4 * o + 16);
+  vf br = (vf)(p0.s0, p0.s4, p0.s8, p0.sc, p1.s0, p1.s4, p1.s8, p1.sc);
+  vf bg = (vf)(p0.s1, p0.s5, p0.s9, p0.sd, p1.s1, p1.s5, p1.s9, p1.sd);
+  vf bb = (vf)(p0.s2, p0.s6, p0.sa, p0.se, p1.s2, p1.s6, p1.sa, p1.se);
+  vf ba = (vf)(p0.s3, p0.s7, p0.sb, p0.sf, p1.s3, p1.s7, p1.sb, p1.sf);
+  vf r = fma(tr, br, cr), gg = fma(tr, bg, cg), b = fma(tr, bb, cb);
+  vf a = fma(tr, ba, 1.0f - tr);
+  vstore16((float16)(r.s0, gg.s0, b.s0, a.s0, r.s1, gg.s1, b.s1, a.s1, r.s2, gg.s2, b.s2, a.s2,
+                     r.s3, gg.s3, b.s3, a.s3),
+           0, linear + 4 * o);
+  vstore16((float16)(r.s4, gg.s4, b.s4, a.s4, r.s5, gg.s5, b.s5, a.s5, r.s6, gg.s6, b.s6, a.s6,
+                     r.s7, gg.s7, b.s7, a.s7),
+           0, linear + 4 * o + 16);
+}
+
+/* ---- The shadow map ---------------------------------------------------------------------- */
+
+/*
+ * Nearest mesh triangle along lines from per-lane origins o in the shared direction d, at any
+ * distance below *best (lines are whole: negative distances count); updates *best.
+ */
+static void vol_mesh_nearest(__global const float *restrict nodes,
+                             __global const float *restrict tris, vf ox, vf oy, vf oz, float dx,
+                             float dy, float dz, vf *best) {
+  float ix = 1.0f / dx, iy = 1.0f / dy, iz = 1.0f / dz;
+  int stack[BVH_MAX_DEPTH];
+  int sp = 0, node = 0;
+  for (;;) {
+    __global const float *nd = nodes + node * NODE_STRIDE;
+    vf t0x = (nd[0] - ox) * ix, t1x = (nd[3] - ox) * ix;
+    vf t0y = (nd[1] - oy) * iy, t1y = (nd[4] - oy) * iy;
+    vf t0z = (nd[2] - oz) * iz, t1z = (nd[5] - oz) * iz;
+    /* fmin/fmax drop the NaN of 0 * inf, which leaves that axis unbounded: safe. */
+    vf lo = fmax(fmax(fmin(t0x, t1x), fmin(t0y, t1y)), fmin(t0z, t1z));
+    vf hi = fmin(fmin(fmax(t0x, t1x), fmax(t0y, t1y)), fmin(fmax(t0z, t1z), *best));
+    if (any(lo <= hi)) {
+      int count = as_int(nd[NODE_COUNT]), first = as_int(nd[NODE_FIRST]);
+      if (count == 0) {
+        stack[sp++] = first;
+        node++;
+        continue;
+      }
+      for (int i = first; i < first + count; i++) {
+        __global const float *tr = tris + i * TRI_STRIDE;
+        float e1x = tr[3], e1y = tr[4], e1z = tr[5];
+        float e2x = tr[6], e2y = tr[7], e2z = tr[8];
+        float px = dy * e2z - dz * e2y, py = dz * e2x - dx * e2z, pz = dx * e2y - dy * e2x;
+        float inv = 1.0f / (e1x * px + e1y * py + e1z * pz);
+        vf sx = ox - tr[0], sy = oy - tr[1], sz = oz - tr[2];
+        vf u = (sx * px + sy * py + sz * pz) * inv;
+        vf qx = sy * e1z - sz * e1y, qy = sz * e1x - sx * e1z, qz = sx * e1y - sy * e1x;
+        vf v = (dx * qx + dy * qy + dz * qz) * inv;
+        vf t = (e2x * qx + e2y * qy + e2z * qz) * inv;
+        vi hit = (u >= 0.0f) & (v >= 0.0f) & (u + v <= 1.0f) & (t < *best);
+        *best = select(*best, t, hit);
+      }
+    }
+    if (sp == 0)
+      return;
+    node = stack[--sp];
+  }
+}
+
+/*
+ * The shadow map (volume.h): SHADOW_PACKET texels of a row per work-item at texel
+ * (SHADOW_PACKET * global x, global y), 'pitch' texels per row. Each texel's line, in the
+ * direction the light travels, is tested against the objects the objects pass uploaded
+ * (counts and offsets in 'f') and the nearest surface along the whole line is kept.
+ */
+__kernel void shadow_map(vfx_frame_t f, vfx_shadow_t sh, __global const float *restrict objs,
+                         __global const float *restrict nodes, __global const float *restrict tris,
+                         __global float *restrict smap, int pitch) {
+  int x0 = SHADOW_PACKET * get_global_id(0), y = get_global_id(1);
+  float texel = 1.0f / sh.inv_texel;
+  vf s = ((float)x0 + VOL_LANES) * texel, r = (y + 0.5f) * texel;
+  vf ox = sh.origin[0] + s * sh.u[0] + r * sh.v[0];
+  vf oy = sh.origin[1] + s * sh.u[1] + r * sh.v[1];
+  vf oz = sh.origin[2] + s * sh.u[2] + r * sh.v[2];
+  float dx = sh.w[0], dy = sh.w[1], dz = sh.w[2];
+  vf best = INFINITY;
+
+  for (int i = 0; i < f.nsph; i++) {
+    __global const float *sp = objs + i * SPH_STRIDE;
+    __global const float *m = sp + SPH_MINV;
+    vf wx = ox - sp[0], wy = oy - sp[1], wz = oz - sp[2];
+    /* Lines farther from the centre than the bounding radius miss. */
+    vf cx = wy * dz - wz * dy, cy = wz * dx - wx * dz, cz = wx * dy - wy * dx;
+    float rad = sp[SPH_RADIUS];
+    if (!any(cx * cx + cy * cy + cz * cz <= rad * rad))
+      continue;
+    vf px = m[0] * wx + m[1] * wy + m[2] * wz;
+    vf py = m[3] * wx + m[4] * wy + m[5] * wz;
+    vf pz = m[6] * wx + m[7] * wy + m[8] * wz;
+    float qx = m[0] * dx + m[1] * dy + m[2] * dz;
+    float qy = m[3] * dx + m[4] * dy + m[5] * dz;
+    float qz = m[6] * dx + m[7] * dy + m[8] * dz;
+    float a = qx * qx + qy * qy + qz * qz;
+    vf b = qx * px + qy * py + qz * pz;
+    vf kx = qy * pz - qz * py, ky = qz * px - qx * pz, kz = qx * py - qy * px;
+    vf disc = 0.25f * a - (kx * kx + ky * ky + kz * kz);
+    vf t = (-b - sqrt(fmax(disc, 0.0f))) / a;
+    best = select(best, t, (disc >= 0.0f) & (t < best));
+  }
+  for (int i = 0; i < f.nconv; i++) {
+    __global const float *c = objs + f.conv_off + i * CONV_STRIDE;
+    vf tin = -INFINITY, tout = INFINITY;
+    vi miss = 0;
+    int np = as_int(c[CONV_NPLANES]);
+    for (int k = 0; k < np; k++) {
+      float pnx = c[4 * k], pny = c[4 * k + 1], pnz = c[4 * k + 2];
+      float den = pnx * dx + pny * dy + pnz * dz;
+      vf num = c[4 * k + 3] - (pnx * ox + pny * oy + pnz * oz);
+      vf t = num / den;
+      if (den < 0.0f)
+        tin = fmax(tin, t);
+      else if (den > 0.0f)
+        tout = fmin(tout, t);
+      else
+        miss |= num < 0.0f;
+    }
+    best = select(best, tin, ~miss & (tin <= tout) & (tin < best));
+  }
+  if (f.ntri > 0)
+    vol_mesh_nearest(nodes, tris, ox, oy, oz, dx, dy, dz, &best);
+  vstore8(best, 0, smap + y * pitch + x0);
+}

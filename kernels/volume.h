@@ -1,0 +1,59 @@
+/*
+ * Definitions shared by the volume kernels (kernels/volume.cl) and the host side of the volume
+ * pass (server/render_volume.c): the layout of a volume record, the shadow map's constants and
+ * the packet width. Valid OpenCL C and valid C11, like common.h.
+ *
+ * A volume reaches the kernel as VOL_STRIDE floats. Its density grid (dims voxels, x fastest)
+ * and its light grid (ldims voxels: the transmittance from each voxel centre towards the light
+ * through the volume) live in one float buffer at the offsets given. A grid spans the volume's
+ * box, voxel centres at box_min + (i + 0.5) * cell, and is interpolated trilinearly with the
+ * edge voxels extended to the faces. The kernel samples only inside the 'tight' box, the part
+ * of the volume where the density can be non-zero (empty-space skipping).
+ */
+#ifndef VOLFX_KERNELS_VOLUME_H
+#define VOLFX_KERNELS_VOLUME_H
+
+#define VOL_TMIN 0    /* Tight box: where the interpolated density can be non-zero. */
+#define VOL_TMAX 3    /* Its upper corner. */
+#define VOL_BMIN 6    /* The grids' box (the volume's bounds). */
+#define VOL_INV 9     /* Density-grid voxels per world unit, per axis. */
+#define VOL_LINV 12   /* Light-grid voxels per world unit, per axis. */
+#define VOL_DIMS 15   /* Density grid dims, int bits. */
+#define VOL_LDIMS 18  /* Light grid dims, int bits. */
+#define VOL_OFF 21    /* Float offset of the density grid in the data buffer, int bits. */
+#define VOL_LOFF 22   /* Float offset of the light grid, int bits. */
+#define VOL_SIGMA 23  /* Extinction per world unit at density 1. */
+#define VOL_ALBEDO 24 /* Single-scattering albedo, linear RGB. */
+#define VOL_SAMPLES 27 /* Samples per ray, int bits. */
+#define VOL_PHASE_G 28 /* Henyey-Greenstein asymmetry g in (-1, 1). */
+#define VOL_STRIDE 32
+
+/* Pixels of a row that a volume work-item shades, one per vector lane. */
+#define VOL_PACKET 8
+
+/* A packet stops marching once every ray lets less than this fraction through. */
+#define VOL_T_MIN (1.0f / 512.0f)
+
+/*
+ * The shadow map of the opaque objects, seen from the directional light: an orthographic
+ * 'size' x 'size' grid of texels over the plane through 'origin' spanned by the unit vectors
+ * 'u' and 'v', both across the light direction. A texel holds the distance along 'w' (the
+ * direction the light travels, -light.direction) from that plane to the first opaque surface
+ * met by the line through the texel centre, or +INFINITY when the line meets nothing; the line
+ * is taken whole (from -infinity), so occluders on either side of the plane count. Texel
+ * (i, j) covers [i, i + 1) x [j, j + 1) of s = (P - origin).u * inv_texel and r = (P -
+ * origin).v * inv_texel. 'enabled' 0 means nothing casts a shadow (every lookup is lit).
+ */
+typedef struct vfx_shadow {
+  float origin[3];
+  float u[3], v[3], w[3];
+  float inv_texel; /* Texels per world unit. */
+  float bias;      /* A point counts as lit up to this far behind the stored depth. */
+  int size;
+  int enabled;
+} vfx_shadow_t;
+
+/* Texels a shadow-map work-item renders, one per lane. */
+#define SHADOW_PACKET 8
+
+#endif
