@@ -14,12 +14,15 @@
  * packet is nearly opaque, and the light and shadow lookups are skipped where every ray of the
  * packet sees zero density.
  *
- * Light shafts (paper 002, §3.3): the shadow term of sample i is the mean of four shadow-map
- * lookups, at the segment boundaries t_(i-1/2) and t_(i+1/2) either side of the ray by half a
- * pixel's footprint across the view and the light (eq. 10); each lookup is itself a bilinear
- * percentage-closer filter of four texels. Consecutive samples share a boundary, so a sample
- * costs two new lookups. The shaft's edge thus moves continuously with the pixel and the
- * sample spacing instead of stepping from texel to texel or sample to sample.
+ * Light shafts (paper 002, §3.3): the shadow term of sample i is the mean of VOL_SHADOW_TAPS
+ * shadow-map tests spread along its segment [t_(i-1/2), t_(i+1/2)], alternately half a pixel's
+ * footprint either side of the ray across the view and the light (eq. 10). The paper takes four
+ * such points, at the segment's ends, shared with the neighbours; a ray crossing the slanted
+ * sheets of light between occluders meets a shadow edge in most segments, and with only the
+ * ends tested the error of each crossing depends on where the edge falls between them, which
+ * draws bands that follow the sample spacing. Tests inside the segment are cheap (one load
+ * each) and shrink that error to 1 / (2 VOL_SHADOW_TAPS) of a segment, below what the eye sees,
+ * while the lateral offsets blend a shaft's edge across the pixel.
  *
  * Like the objects kernel, a work-item shades VOL_PACKET adjacent pixels of a row in the lanes
  * of a float8, so that PoCL's code is vector code; grid lookups gather through private arrays.
@@ -32,73 +35,81 @@ typedef int8 vi;
 
 #define VOL_LANES ((vf)(0.5f, 1.5f, 2.5f, 3.5f, 4.5f, 5.5f, 6.5f, 7.5f))
 
-/* p[idx] per lane. */
+/* p[idx] per lane: eight loads that LLVM may turn into one gather. */
 static inline vf vol_gather(__global const float *restrict p, vi idx) {
-  int at[8];
-  float out[8];
-  vstore8(idx, 0, at);
-  for (int l = 0; l < 8; l++)
-    out[l] = p[at[l]];
-  return vload8(0, out);
+  return (vf)(p[idx.s0], p[idx.s1], p[idx.s2], p[idx.s3], p[idx.s4], p[idx.s5], p[idx.s6],
+              p[idx.s7]);
+}
+
+/* The x-pairs (volume.h) of four voxels per lane, blended along x by 'fx': density into
+ * *d and light into *l, each a bilinear step short of the trilinear result. */
+static inline void vol_pair(__global const float4 *restrict g, vi b, vf fx, vf *d, vf *l) {
+  float4 q0 = g[b.s0], q1 = g[b.s1], q2 = g[b.s2], q3 = g[b.s3];
+  float4 q4 = g[b.s4], q5 = g[b.s5], q6 = g[b.s6], q7 = g[b.s7];
+  vf d0 = (vf)(q0.x, q1.x, q2.x, q3.x, q4.x, q5.x, q6.x, q7.x);
+  vf d1 = (vf)(q0.y, q1.y, q2.y, q3.y, q4.y, q5.y, q6.y, q7.y);
+  vf l0 = (vf)(q0.z, q1.z, q2.z, q3.z, q4.z, q5.z, q6.z, q7.z);
+  vf l1 = (vf)(q0.w, q1.w, q2.w, q3.w, q4.w, q5.w, q6.w, q7.w);
+  *d = mix(d0, d1, fx);
+  *l = mix(l0, l1, fx);
 }
 
 /*
- * The trilinear interpolation of grid 'g' (n[0] x n[1] x n[2], x fastest) at grid coordinates
- * (x, y, z), in which voxel i's centre is at i; coordinates are clamped to the centres of the
- * edge voxels, so the edge values extend to the box's faces.
+ * The trilinear interpolation of the density (*d) and light (*l) of grid 'g' (n[0] x n[1] x
+ * n[2]) at grid coordinates (x, y, z), in which voxel i's centre is at i; coordinates are
+ * clamped to the centres of the edge voxels, so the edge values extend to the box's faces.
  */
-static inline vf vol_trilinear(__global const float *restrict g, int nx, int ny, int nz, vf x,
-                               vf y, vf z) {
+static inline void vol_trilinear(__global const float4 *restrict g, int nx, int ny, int nz, vf x,
+                                 vf y, vf z, vf *d, vf *l) {
   x = clamp(x, 0.0f, (float)(nx - 1));
   y = clamp(y, 0.0f, (float)(ny - 1));
   z = clamp(z, 0.0f, (float)(nz - 1));
   vf fx = floor(x), fy = floor(y), fz = floor(z);
   vi ix = convert_int8(fx), iy = convert_int8(fy), iz = convert_int8(fz);
-  vi sx = select((vi)1, (vi)0, ix >= nx - 1);
   vi sy = select((vi)nx, (vi)0, iy >= ny - 1);
   vi sz = select((vi)(nx * ny), (vi)0, iz >= nz - 1);
   fx = x - fx, fy = y - fy, fz = z - fz;
   vi b = ix + nx * (iy + ny * iz);
-  vf c00 = mix(vol_gather(g, b), vol_gather(g, b + sx), fx);
-  vf c10 = mix(vol_gather(g, b + sy), vol_gather(g, b + sy + sx), fx);
-  vf c01 = mix(vol_gather(g, b + sz), vol_gather(g, b + sz + sx), fx);
-  vf c11 = mix(vol_gather(g, b + sz + sy), vol_gather(g, b + sz + sy + sx), fx);
-  return mix(mix(c00, c10, fy), mix(c01, c11, fy), fz);
+  vf d00, d10, d01, d11, l00, l10, l01, l11;
+  vol_pair(g, b, fx, &d00, &l00);
+  vol_pair(g, b + sy, fx, &d10, &l10);
+  vol_pair(g, b + sz, fx, &d01, &l01);
+  vol_pair(g, b + sz + sy, fx, &d11, &l11);
+  *d = mix(mix(d00, d10, fy), mix(d01, d11, fy), fz);
+  *l = mix(mix(l00, l10, fy), mix(l01, l11, fy), fz);
 }
 
-/*
- * The fraction of four shadow-map texels around texel position (s, r) whose stored depth is
- * not nearer the light than 'z' (minus the bias), weighted bilinearly: 1 lit, 0 shadowed.
- */
-static inline vf vol_pcf(__global const float *restrict smap, int pitch, const vfx_shadow_t *sh,
+/* 1 where the shadow-map texel containing (s, r) does not hold a surface nearer the light than
+ * 'z' (less the bias), else 0. */
+static inline vf vol_lit(__global const float *restrict smap, int pitch, const vfx_shadow_t *sh,
                          vf s, vf r, vf z) {
-  vf x = s - 0.5f, y = r - 0.5f;
-  vf fx = floor(x), fy = floor(y);
   float top = (float)(sh->size - 1);
-  vi i0 = convert_int8(clamp(fx, 0.0f, top)), i1 = convert_int8(clamp(fx + 1.0f, 0.0f, top));
-  vi j0 = convert_int8(clamp(fy, 0.0f, top)), j1 = convert_int8(clamp(fy + 1.0f, 0.0f, top));
-  fx = x - fx, fy = y - fy;
-  vf zb = z - sh->bias;
-  vf l00 = select((vf)0.0f, (vf)1.0f, zb <= vol_gather(smap, j0 * pitch + i0));
-  vf l10 = select((vf)0.0f, (vf)1.0f, zb <= vol_gather(smap, j0 * pitch + i1));
-  vf l01 = select((vf)0.0f, (vf)1.0f, zb <= vol_gather(smap, j1 * pitch + i0));
-  vf l11 = select((vf)0.0f, (vf)1.0f, zb <= vol_gather(smap, j1 * pitch + i1));
-  return mix(mix(l00, l10, fx), mix(l01, l11, fx), fy);
+  vi i = convert_int8(clamp(floor(s), 0.0f, top)), j = convert_int8(clamp(floor(r), 0.0f, top));
+  vi at = j * pitch + i;
+  vf stored = (vf)(smap[at.s0], smap[at.s1], smap[at.s2], smap[at.s3], smap[at.s4], smap[at.s5],
+                   smap[at.s6], smap[at.s7]);
+  return select((vf)0.0f, (vf)1.0f, z - sh->bias <= stored);
 }
 
 /*
- * The shadow term at distance 't' along the packet's rays: the mean of the filtered lookups
- * half a pixel either side of the ray. The lookup position is linear in t: (s0 + t ds, r0 + t
- * dr, z0 + t dz) on the ray, and (os, or) per unit of t the half-pixel offset across it.
+ * The shadow term of the segment [t - dt / 2, t + dt / 2] of the packet's rays: the mean of
+ * VOL_SHADOW_TAPS tests spread evenly along it, alternately half a pixel either side of the ray
+ * (paper 002, §3.3, with more points per segment than its four). The lookup position is linear
+ * in t: (s0 + t ds, r0 + t dr, z0 + t dz) on the ray, and (os, or) per unit of t the half-pixel
+ * offset across it.
  */
 static inline vf vol_shadow(__global const float *restrict smap, int pitch, const vfx_shadow_t *sh,
-                            vf t, vf s0, vf ds, vf r0, vf dr, vf z0, vf dz, vf os, vf or_) {
+                            vf t, vf dt, vf s0, vf ds, vf r0, vf dr, vf z0, vf dz, vf os, vf or_) {
   if (!sh->enabled)
     return (vf)1.0f;
-  vf s = s0 + t * ds, r = r0 + t * dr, z = z0 + t * dz;
-  vf ts = t * os, tr = t * or_;
-  return 0.5f * (vol_pcf(smap, pitch, sh, s + ts, r + tr, z) +
-                 vol_pcf(smap, pitch, sh, s - ts, r - tr, z));
+  vf sum = 0.0f;
+  for (int k = 0; k < VOL_SHADOW_TAPS; k++) {
+    vf tk = t + dt * ((k + 0.5f) / VOL_SHADOW_TAPS - 0.5f);
+    float side = k & 1 ? -1.0f : 1.0f;
+    vf s = s0 + tk * (ds + side * os), r = r0 + tk * (dr + side * or_), z = z0 + tk * dz;
+    sum += vol_lit(smap, pitch, sh, s, r, z);
+  }
+  return sum * (1.0f / VOL_SHADOW_TAPS);
 }
 
 /*
@@ -108,7 +119,7 @@ static inline vf vol_shadow(__global const float *restrict smap, int pitch, cons
  * 'linear' (colour and alpha) in place.
  */
 __kernel void volumes(vfx_frame_t f, vfx_shadow_t sh, __global const float *restrict vols,
-                      int nvol, __global const float *restrict data,
+                      int nvol, __global const float4 *restrict data,
                       __global const float *restrict smap, int smap_pitch,
                       __global const float *restrict depth, __global float *restrict linear) {
   int x0 = VOL_PACKET * get_global_id(0), y = get_global_id(1);
@@ -173,18 +184,12 @@ __kernel void volumes(vfx_frame_t f, vfx_shadow_t sh, __global const float *rest
     t0 = select((vf)0.0f, t0, act);
 
     int gx = as_int(rec[VOL_DIMS]), gy = as_int(rec[VOL_DIMS + 1]), gz = as_int(rec[VOL_DIMS + 2]);
-    int hx = as_int(rec[VOL_LDIMS]), hy = as_int(rec[VOL_LDIMS + 1]),
-        hz = as_int(rec[VOL_LDIMS + 2]);
-    __global const float *grid = data + as_int(rec[VOL_OFF]);
-    __global const float *lgrid = data + as_int(rec[VOL_LOFF]);
+    __global const float4 *grid = data + as_int(rec[VOL_OFF]);
     /* Grid coordinates along the ray, linear in t: voxel i's centre is at i. */
     float bx = ex - rec[VOL_BMIN], by = ey - rec[VOL_BMIN + 1], bz = ez - rec[VOL_BMIN + 2];
     vf g0x = bx * rec[VOL_INV] - 0.5f, g0y = by * rec[VOL_INV + 1] - 0.5f,
        g0z = bz * rec[VOL_INV + 2] - 0.5f;
     vf gdx = dx * rec[VOL_INV], gdy = dy * rec[VOL_INV + 1], gdz = dz * rec[VOL_INV + 2];
-    vf h0x = bx * rec[VOL_LINV] - 0.5f, h0y = by * rec[VOL_LINV + 1] - 0.5f,
-       h0z = bz * rec[VOL_LINV + 2] - 0.5f;
-    vf hdx = dx * rec[VOL_LINV], hdy = dy * rec[VOL_LINV + 1], hdz = dz * rec[VOL_LINV + 2];
 
     float sigma = rec[VOL_SIGMA], g = rec[VOL_PHASE_G];
     /* Henyey-Greenstein, scaled by 4 pi so that an isotropic medium (g = 0) has phase 1. */
@@ -193,24 +198,14 @@ __kernel void volumes(vfx_frame_t f, vfx_shadow_t sh, __global const float *rest
     vf lr = f.light_rgb[0] * phase, lg = f.light_rgb[1] * phase, lb = f.light_rgb[2] * phase;
     float ar = rec[VOL_ALBEDO], ag = rec[VOL_ALBEDO + 1], ab = rec[VOL_ALBEDO + 2];
 
-    vf sprev = 0.0f;
-    int have_prev = 0;
     for (int i = 0; i < n; i++) {
       vf t = t0 + ((float)i + 0.5f) * dt;
-      vf sig = sigma * vol_trilinear(grid, gx, gy, gz, g0x + t * gdx, g0y + t * gdy, g0z + t * gdz);
-      sig = select((vf)0.0f, sig, act);
-      if (!any(sig > 0.0f)) {
-        have_prev = 0;
+      vf sig, tl;
+      vol_trilinear(grid, gx, gy, gz, g0x + t * gdx, g0y + t * gdy, g0z + t * gdz, &sig, &tl);
+      sig = select((vf)0.0f, sigma * sig, act);
+      if (!any(sig > 0.0f))
         continue;
-      }
-      vf hdt = 0.5f * dt;
-      if (!have_prev)
-        sprev = vol_shadow(smap, smap_pitch, &sh, t - hdt, s0, ds, r0, dr, z0, zd, os, or_);
-      vf snext = vol_shadow(smap, smap_pitch, &sh, t + hdt, s0, ds, r0, dr, z0, zd, os, or_);
-      vf shade = 0.5f * (sprev + snext);
-      sprev = snext;
-      have_prev = 1;
-      vf tl = vol_trilinear(lgrid, hx, hy, hz, h0x + t * hdx, h0y + t * hdy, h0z + t * hdz);
+      vf shade = vol_shadow(smap, smap_pitch, &sh, t, dt, s0, ds, r0, dr, z0, zd, os, or_);
       vf direct = tl * shade;
       vf a = 1.0f - exp(-sig * dt);
       vf w = tr * a;

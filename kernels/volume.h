@@ -3,33 +3,35 @@
  * pass (server/render_volume.c): the layout of a volume record, the shadow map's constants and
  * the packet width. Valid OpenCL C and valid C11, like common.h.
  *
- * A volume reaches the kernel as VOL_STRIDE floats. Its density grid (dims voxels, x fastest)
- * and its light grid (ldims voxels: the transmittance from each voxel centre towards the light
- * through the volume) live in one float buffer at the offsets given. A grid spans the volume's
- * box, voxel centres at box_min + (i + 0.5) * cell, and is interpolated trilinearly with the
- * edge voxels extended to the faces. The kernel samples only inside the 'tight' box, the part
- * of the volume where the density can be non-zero (empty-space skipping).
+ * A volume reaches the kernel as VOL_STRIDE floats, and its grid as dims voxels (x fastest) of a
+ * float4 buffer: voxel i holds (d[i], d[i + x], T[i], T[i + x]), the density d and the light
+ * transmittance T (from the voxel centre towards the light through the volume) of the voxel and
+ * of its neighbour along x (itself at the last x), so that a trilinear lookup of both takes
+ * four loads instead of sixteen. A grid spans the volume's box, voxel centres at box_min + (i +
+ * 0.5) * cell, and is interpolated trilinearly with the edge voxels extended to the faces. The
+ * kernel samples only inside the 'tight' box, the part of the volume where the density can be
+ * non-zero (empty-space skipping).
  */
 #ifndef VOLFX_KERNELS_VOLUME_H
 #define VOLFX_KERNELS_VOLUME_H
 
 #define VOL_TMIN 0    /* Tight box: where the interpolated density can be non-zero. */
 #define VOL_TMAX 3    /* Its upper corner. */
-#define VOL_BMIN 6    /* The grids' box (the volume's bounds). */
-#define VOL_INV 9     /* Density-grid voxels per world unit, per axis. */
-#define VOL_LINV 12   /* Light-grid voxels per world unit, per axis. */
-#define VOL_DIMS 15   /* Density grid dims, int bits. */
-#define VOL_LDIMS 18  /* Light grid dims, int bits. */
-#define VOL_OFF 21    /* Float offset of the density grid in the data buffer, int bits. */
-#define VOL_LOFF 22   /* Float offset of the light grid, int bits. */
-#define VOL_SIGMA 23  /* Extinction per world unit at density 1. */
-#define VOL_ALBEDO 24 /* Single-scattering albedo, linear RGB. */
-#define VOL_SAMPLES 27 /* Samples per ray, int bits. */
-#define VOL_PHASE_G 28 /* Henyey-Greenstein asymmetry g in (-1, 1). */
+#define VOL_BMIN 6    /* The grid's box (the volume's bounds). */
+#define VOL_INV 9     /* Grid voxels per world unit, per axis. */
+#define VOL_DIMS 12   /* Grid dims, int bits. */
+#define VOL_OFF 15    /* Offset of the grid's first voxel in the data buffer (float4s), int bits. */
+#define VOL_SIGMA 16  /* Extinction per world unit at density 1. */
+#define VOL_ALBEDO 17 /* Single-scattering albedo, linear RGB. */
+#define VOL_SAMPLES 20 /* Samples per ray, int bits. */
+#define VOL_PHASE_G 21 /* Henyey-Greenstein asymmetry g in (-1, 1). */
 #define VOL_STRIDE 32
 
 /* Pixels of a row that a volume work-item shades, one per vector lane. */
 #define VOL_PACKET 8
+
+/* Shadow-map tests per sample segment (kernels/volume.cl, vol_shadow). */
+#define VOL_SHADOW_TAPS 4
 
 /* A packet stops marching once every ray lets less than this fraction through. */
 #define VOL_T_MIN (1.0f / 512.0f)

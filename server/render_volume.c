@@ -6,7 +6,8 @@
  * - per volume, its density grid (a density_grid_t as given, or the procedural noise baked
  *   into a grid on the host), a light grid holding the transmittance from each voxel towards
  *   the light through the volume (one sweep across the grid, slice by slice from the light's
- *   side) and the tight box where the density can be non-zero. These are cached per volume and
+ *   side), both interleaved in x-pairs as the kernel reads them (volume.h), and the tight box
+ *   where the density can be non-zero. These are cached per volume and
  *   rebuilt only when the volume, its grid or the light changes, so a still scene uploads
  *   nothing;
  * - the shadow map of the objects, orthographic along the light and fitted to the volumes'
@@ -21,11 +22,10 @@
 #include "render_internal.h"
 #include "../kernels/volume.h"
 
-#define NOISE_MAX_SIDE 96  /* Largest side of a baked noise grid. */
-#define NOISE_PER_SCALE 8  /* Baked voxels per noise_scale. */
-#define NOISE_OCTAVES 4    /* fBm octaves of the value noise. */
-#define NOISE_FADE 0.15    /* Noise volumes fade to zero over this fraction of the box. */
-#define LIGHT_FULL_SIDE 32 /* Light grids match density grids up to this side, then halve. */
+#define NOISE_MAX_SIDE 96 /* Largest side of a baked noise grid. */
+#define NOISE_PER_SCALE 8 /* Baked voxels per noise_scale. */
+#define NOISE_OCTAVES 4   /* fBm octaves of the value noise. */
+#define NOISE_FADE 0.15   /* Noise volumes fade to zero over this fraction of the box. */
 
 /* One volume's prepared data, keyed by everything it was made from. */
 typedef struct vol_entry {
@@ -39,11 +39,11 @@ typedef struct vol_entry {
   /* The data. */
   float *baked; /* VOLUME_NOISE: the baked density (owned); NULL for grids. */
   uint32_t dims[3];
-  float *lgrid; /* Light transmittance (owned), ldims voxels. */
-  uint32_t ldims[3];
+  float *lgrid;           /* Light transmittance while building (owned), dims voxels. */
+  float *packed;          /* The float4 x-pairs the kernel reads (volume.h), dims voxels (owned). */
   float tmin[3], tmax[3]; /* Tight box. */
   int empty;              /* No voxel is above zero. */
-  size_t off, loff;       /* Float offsets in the device buffer. */
+  size_t off;             /* Offset in the device buffer, float4s. */
 } vol_entry_t;
 
 /* What the cached shadow map was rendered from. */
@@ -188,7 +188,7 @@ static double trilinear(const float *g, const uint32_t n[3], const double c[3]) 
 }
 
 /*
- * Fills e->lgrid with the transmittance from each light-grid voxel centre towards the light
+ * Fills e->lgrid with the transmittance from each voxel centre towards the light
  * (direction 'l', unit) through the volume, for extinction sigma * density. One sweep: along
  * the axis on which the light moves fastest in voxels, slice by slice from the light's side,
  * a voxel's transmittance is that of the point one slice up the light ray (bilinear in the
@@ -196,7 +196,7 @@ static double trilinear(const float *g, const uint32_t n[3], const double c[3]) 
  * the trapezoid rule. A point that falls beside the grid sees the light unobstructed.
  */
 static int light_grid(vol_entry_t *e, const float *dens, float sigma, const float l[3]) {
-  uint32_t *n = e->ldims;
+  uint32_t *n = e->dims;
   size_t nl = (size_t)n[0] * n[1] * n[2];
   float *sg = malloc(nl * sizeof(float));
   free(e->lgrid);
@@ -255,10 +255,9 @@ static int light_grid(vol_entry_t *e, const float *dens, float sigma, const floa
           size_t i10 = base + b1 * stride[b] + c0 * stride[c];
           size_t i01 = base + b0 * stride[b] + c1 * stride[c];
           size_t i11 = base + b1 * stride[b] + c1 * stride[c];
-          double w00 = (1 - fb) * (1 - fc), w10 = fb * (1 - fc), w01 = (1 - fb) * fc,
-                 w11 = fb * fc;
-          t_up = w00 * e->lgrid[i00] + w10 * e->lgrid[i10] + w01 * e->lgrid[i01] +
-                 w11 * e->lgrid[i11];
+          double w00 = (1 - fb) * (1 - fc), w10 = fb * (1 - fc), w01 = (1 - fb) * fc, w11 = fb * fc;
+          t_up =
+              w00 * e->lgrid[i00] + w10 * e->lgrid[i10] + w01 * e->lgrid[i01] + w11 * e->lgrid[i11];
           s_up = w00 * sg[i00] + w10 * sg[i10] + w01 * sg[i01] + w11 * sg[i11];
           e->lgrid[at] = (float)(t_up * exp(-0.5 * step * (here + s_up)));
         } else {
@@ -303,10 +302,27 @@ static int tight_box(vol_entry_t *e, const float *dens) {
   return 0;
 }
 
+/* Interleaves density and light into e->packed as the kernel reads them (volume.h). */
+static int pack(vol_entry_t *e, const float *dens) {
+  size_t n = (size_t)e->dims[0] * e->dims[1] * e->dims[2];
+  e->packed = malloc(4 * n * sizeof(float));
+  if (e->packed == NULL)
+    return -1;
+  float *q = e->packed;
+  uint32_t nx = e->dims[0];
+  for (size_t row = 0; row < n; row += nx)
+    for (uint32_t x = 0; x < nx; x++, q += 4) {
+      size_t i = row + x, j = x + 1 < nx ? i + 1 : i;
+      q[0] = dens[i], q[1] = dens[j], q[2] = e->lgrid[i], q[3] = e->lgrid[j];
+    }
+  return 0;
+}
+
 static void entry_clear(vol_entry_t *e) {
   grid_drop(e->grid);
   free(e->baked);
   free(e->lgrid);
+  free(e->packed);
   memset(e, 0, sizeof *e);
 }
 
@@ -340,11 +356,14 @@ static int entry_build(vol_entry_t *e, const rvolume_t *v, float sigma, const fl
       return -1;
     dens = e->baked;
   }
-  for (int k = 0; k < 3; k++)
-    e->ldims[k] = e->dims[k] > LIGHT_FULL_SIDE ? (e->dims[k] + 1) / 2 : e->dims[k];
   e->empty = tight_box(e, dens);
-  if (!e->empty && light_grid(e, dens, sigma, l) != 0)
-    return -1;
+  if (!e->empty) {
+    if (light_grid(e, dens, sigma, l) != 0 || pack(e, dens) != 0)
+      return -1;
+    free(e->lgrid);
+    free(e->baked);
+    e->lgrid = e->baked = NULL;
+  }
   e->valid = 1;
   return 0;
 }
@@ -406,8 +425,11 @@ static void fit_shadow(vfx_shadow_t *sh, const vol_entry_t *const *ents, int n, 
     sh->u[k] = (float)u[k], sh->v[k] = (float)v[k], sh->w[k] = (float)w[k];
   }
   sh->inv_texel = (float)(1 / texel);
-  /* Volume samples sit in the air, not on surfaces, so the bias only absorbs rounding. */
-  sh->bias = (float)(1e-5 * (1 + fabs(lo[2]) + fabs(hi[2]) + side));
+  /* A texel's depth stands for the whole texel, so on a surface sloping away from the light the
+   * true depth under a sample differs from it by up to a texel or two: samples just in front
+   * of such a surface must not fall into its shadow (acne). Leaking light two texels behind an
+   * occluder's face cannot be seen in a medium. */
+  sh->bias = (float)(2 * texel + 1e-5 * (1 + fabs(lo[2]) + fabs(hi[2])));
   sh->size = size;
   sh->enabled = 1;
 }
@@ -589,18 +611,17 @@ int render_pass_volumes(renderer_t *r, const render_scene_t *scene, unsigned lay
   for (int i = 0; i < n; i++) {
     vol_entry_t *e = &vs->ents[i];
     size_t nd = (size_t)e->dims[0] * e->dims[1] * e->dims[2];
-    size_t nl = (size_t)e->ldims[0] * e->ldims[1] * e->ldims[2];
     if (e->empty)
       continue;
-    changed |= e->off != total || e->loff != total + nd;
-    e->off = total, e->loff = total + nd;
-    total += nd + nl;
+    changed |= e->off != total;
+    e->off = total;
+    total += nd;
   }
   changed |= total != vs->data_floats;
   if (total == 0)
     goto done;
-  if (render_ensure_buffer(r, &vs->data, &vs->cap_data, total, sizeof(float), CL_MEM_READ_ONLY, 1,
-                           err, errlen)) {
+  if (render_ensure_buffer(r, &vs->data, &vs->cap_data, total, 4 * sizeof(float), CL_MEM_READ_ONLY,
+                           1, err, errlen)) {
     rc = PROTO_E_DEVICE;
     goto done;
   }
@@ -612,13 +633,8 @@ int render_pass_volumes(renderer_t *r, const render_scene_t *scene, unsigned lay
       if (e->empty)
         continue;
       size_t nd = (size_t)e->dims[0] * e->dims[1] * e->dims[2];
-      size_t nl = (size_t)e->ldims[0] * e->ldims[1] * e->ldims[2];
-      const float *dens = e->baked ? e->baked : e->grid->data;
-      cr = clEnqueueWriteBuffer(r->dev.queue, vs->data, CL_FALSE, e->off * sizeof(float),
-                                nd * sizeof(float), dens, 0, NULL, NULL);
-      if (cr == CL_SUCCESS)
-        cr = clEnqueueWriteBuffer(r->dev.queue, vs->data, CL_FALSE, e->loff * sizeof(float),
-                                  nl * sizeof(float), e->lgrid, 0, NULL, NULL);
+      cr = clEnqueueWriteBuffer(r->dev.queue, vs->data, CL_FALSE, e->off * 4 * sizeof(float),
+                                nd * 4 * sizeof(float), e->packed, 0, NULL, NULL);
     }
     if (cr == CL_SUCCESS)
       vs->data_floats = total;
@@ -652,19 +668,16 @@ int render_pass_volumes(renderer_t *r, const render_scene_t *scene, unsigned lay
     memset(rec, 0, VOL_STRIDE * sizeof(float));
     for (int k = 0; k < 3; k++) {
       double ext = (double)e->max[k] - e->min[k];
-      int32_t di = (int32_t)e->dims[k], li = (int32_t)e->ldims[k];
+      int32_t di = (int32_t)e->dims[k];
       rec[VOL_TMIN + k] = e->tmin[k];
       rec[VOL_TMAX + k] = e->tmax[k];
       rec[VOL_BMIN + k] = e->min[k];
       rec[VOL_INV + k] = (float)(e->dims[k] / ext);
-      rec[VOL_LINV + k] = (float)(e->ldims[k] / ext);
       memcpy(&rec[VOL_DIMS + k], &di, sizeof di);
-      memcpy(&rec[VOL_LDIMS + k], &li, sizeof li);
       rec[VOL_ALBEDO + k] = v->albedo[k];
     }
-    int32_t off = (int32_t)e->off, loff = (int32_t)e->loff, ns = v->samples;
+    int32_t off = (int32_t)e->off, ns = v->samples;
     memcpy(&rec[VOL_OFF], &off, sizeof off);
-    memcpy(&rec[VOL_LOFF], &loff, sizeof loff);
     memcpy(&rec[VOL_SAMPLES], &ns, sizeof ns);
     rec[VOL_SIGMA] = v->density;
     rec[VOL_PHASE_G] = v->phase_g;
@@ -676,9 +689,9 @@ int render_pass_volumes(renderer_t *r, const render_scene_t *scene, unsigned lay
     goto done;
   }
   if (cr == CL_SUCCESS)
-    cr = clEnqueueWriteBuffer(r->dev.queue, vs->recs, CL_FALSE, 0,
-                              (size_t)nd * VOL_STRIDE * sizeof(float), vs->host_recs, 0, NULL,
-                              NULL);
+    cr =
+        clEnqueueWriteBuffer(r->dev.queue, vs->recs, CL_FALSE, 0,
+                             (size_t)nd * VOL_STRIDE * sizeof(float), vs->host_recs, 0, NULL, NULL);
   if (cr != CL_SUCCESS) {
     set_err(err, errlen, "[render] volume upload failed on %s: %s", r->dev.device_name,
             cl_dev_strerror(cr));
