@@ -381,6 +381,7 @@ static int check_volumes(const cJSON *doc, scene_error_t *err) {
       double d[3];
       vec3d(dims, d);
       for (int k = 0; k < 3; k++) {
+        snprintf(p, sizeof p, "volumes.%d.dims.%d", i, k);
         if (d[k] != floor(d[k]))
           return set_err(err, PROTO_E_INVALID_PARAMS, p, "%s: %g is not an integer", p, d[k]);
         if (d[k] > g_volume_side)
