@@ -125,7 +125,8 @@ static void fill_cloud(density_grid_t *g, int blobs, double phase) {
 
 static int render_once(renderer_t *r, const render_scene_t *s, uint32_t w, uint32_t h,
                        proto_format_t fmt, double *ms, double *vol_ms, render_output_t *keep) {
-  render_params_t p = {.width = w, .height = h, .format = fmt, .layers = LAYER_ALL};
+  /* PNGs are for the documentation: compressed hard. */
+  render_params_t p = {.width = w, .height = h, .format = fmt, .layers = LAYER_ALL, .png_level = 9};
   render_output_t out;
   char err[512];
   if (renderer_render(r, s, &p, &out, err, sizeof err) != 0) {
@@ -197,15 +198,15 @@ static int images(renderer_t *r, const char *dir) {
       {.shape = SHAPE_PLANE, .scale = {1, 1, 1}, .color = {0.5f, 0.5f, 0.5f}},
       {.shape = SHAPE_BOX,
        .position = {0, 1.4f, 0},
-       .scale = {7, 0.05f, 7},
+       .scale = {4.5f, 0.05f, 4.5f},
        .rotation = {12, 0, 8},
        .color = {0.7f, 0.3f, 0.2f}},
   };
   render_scene_t cut = s;
   cut.objects = plate, cut.nobjects = 2;
   cut.volumes = &fog, cut.nvolumes = 1;
-  cut.camera.eye[0] = 0, cut.camera.eye[1] = 2.2f, cut.camera.eye[2] = 8;
-  cut.camera.target[0] = 0, cut.camera.target[1] = 1.4f, cut.camera.target[2] = 0;
+  cut.camera.eye[0] = 6, cut.camera.eye[1] = 3.6f, cut.camera.eye[2] = 10;
+  cut.camera.target[0] = 0, cut.camera.target[1] = 1.2f, cut.camera.target[2] = 0;
   int rc = write_png(r, &cut, 768, 768, dir, "volume_cut.png");
   renderer_destroy(r);
   return rc;
