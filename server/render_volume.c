@@ -166,27 +166,6 @@ static int bake_noise(const rvolume_t *v, vol_entry_t *e) {
 
 /* ---- Light grid ---------------------------------------------------------------------------- */
 
-/* Trilinear interpolation of grid 'g' at grid coordinates 'c' (voxel centres at integers),
- * clamped to the edge voxels: what the kernel computes. */
-static double trilinear(const float *g, const uint32_t n[3], const double c[3]) {
-  int i0[3], i1[3];
-  double f[3];
-  for (int k = 0; k < 3; k++) {
-    double x = c[k] < 0 ? 0 : c[k] > n[k] - 1.0 ? n[k] - 1.0 : c[k];
-    double fl = floor(x);
-    i0[k] = (int)fl;
-    i1[k] = i0[k] + 1 < (int)n[k] ? i0[k] + 1 : i0[k];
-    f[k] = x - fl;
-  }
-  double r = 0;
-  for (int k = 0; k < 8; k++) {
-    int x = k & 1 ? i1[0] : i0[0], y = k & 2 ? i1[1] : i0[1], z = k & 4 ? i1[2] : i0[2];
-    double w = (k & 1 ? f[0] : 1 - f[0]) * (k & 2 ? f[1] : 1 - f[1]) * (k & 4 ? f[2] : 1 - f[2]);
-    r += w * g[((size_t)z * n[1] + y) * n[0] + x];
-  }
-  return r;
-}
-
 /*
  * Fills e->lgrid with the transmittance from each voxel centre towards the light
  * (direction 'l', unit) through the volume, for extinction sigma * density. One sweep: along
@@ -205,21 +184,14 @@ static int light_grid(vol_entry_t *e, const float *dens, float sigma, const floa
     free(sg);
     return -1;
   }
-  /* Extinction at the light grid's voxel centres. */
+  /* Extinction at the voxel centres. */
   double cell[3], lv[3];
   for (int k = 0; k < 3; k++) {
     cell[k] = ((double)e->max[k] - e->min[k]) / n[k];
     lv[k] = l[k] / cell[k];
   }
-  for (uint32_t z = 0; z < n[2]; z++)
-    for (uint32_t y = 0; y < n[1]; y++)
-      for (uint32_t x = 0; x < n[0]; x++) {
-        uint32_t i[3] = {x, y, z};
-        double c[3];
-        for (int k = 0; k < 3; k++)
-          c[k] = (i[k] + 0.5) * e->dims[k] / n[k] - 0.5;
-        sg[((size_t)z * n[1] + y) * n[0] + x] = (float)(sigma * trilinear(dens, e->dims, c));
-      }
+  for (size_t i = 0; i < nl; i++)
+    sg[i] = sigma * dens[i];
   int a = 0;
   for (int k = 1; k < 3; k++)
     if (fabs(lv[k]) > fabs(lv[a]))
