@@ -94,20 +94,18 @@ static inline vf vol_lit(__global const float *restrict smap, int pitch, const v
 /*
  * The shadow term of the segment [t - dt / 2, t + dt / 2] of the packet's rays: the mean of
  * VOL_SHADOW_TAPS tests spread evenly along it, alternately half a pixel either side of the ray
- * (paper 002, §3.3, with more points per segment than its four). The lookup position is linear
- * in t: (s0 + t ds, r0 + t dr, z0 + t dz) on the ray, and (os, or) per unit of t the half-pixel
- * offset across it.
+ * (paper 002, §3.3, with more points per segment than its four). On the ray the map position is
+ * linear in t: (s0 + t ds, r0 + t dr, z0 + t dz), s0, r0 and z0 those of the eye; (os, or) is
+ * the half-pixel offset across the ray per unit of t.
  */
 static inline vf vol_shadow(__global const float *restrict smap, int pitch, const vfx_shadow_t *sh,
-                            vf t, vf dt, vf s0, vf ds, vf r0, vf dr, vf z0, vf dz, vf os, vf or_) {
-  if (!sh->enabled)
-    return (vf)1.0f;
+                            vf t, vf dt, float s0, vf ds, float r0, vf dr, float z0, vf dz, vf os,
+                            vf or_) {
   vf sum = 0.0f;
   for (int k = 0; k < VOL_SHADOW_TAPS; k++) {
     vf tk = t + dt * ((k + 0.5f) / VOL_SHADOW_TAPS - 0.5f);
-    float side = k & 1 ? -1.0f : 1.0f;
-    vf s = s0 + tk * (ds + side * os), r = r0 + tk * (dr + side * or_), z = z0 + tk * dz;
-    sum += vol_lit(smap, pitch, sh, s, r, z);
+    vf s = k & 1 ? ds - os : ds + os, r = k & 1 ? dr - or_ : dr + or_;
+    sum += vol_lit(smap, pitch, sh, s0 + tk * s, r0 + tk * r, z0 + tk * dz);
   }
   return sum * (1.0f / VOL_SHADOW_TAPS);
 }
@@ -117,6 +115,12 @@ static inline vf vol_shadow(__global const float *restrict smap, int pitch, cons
  * over the padded buffers of the frame 'f' that the objects pass set up. 'vols' holds 'nvol'
  * records (volume.h) nearest first, 'data' their grids; the result is composited over
  * 'linear' (colour and alpha) in place.
+ *
+ * Register pressure decides the speed here more than arithmetic: every per-lane value that
+ * lives across the sample loop is a vector register, and once they spill each sample pays for
+ * it. So only the ray direction, the interval, the half-pixel offset, the phase and the
+ * accumulators cross the loop; grid and shadow-map coordinates are rebuilt from the direction
+ * at each sample, and whatever depends only on the eye stays scalar.
  */
 __kernel void volumes(vfx_frame_t f, vfx_shadow_t sh, __global const float *restrict vols,
                       int nvol, __global const float4 *restrict data,
@@ -136,45 +140,48 @@ __kernel void volumes(vfx_frame_t f, vfx_shadow_t sh, __global const float *rest
   vf tend = fmin(vload8(0, depth + o), f.far_);
 
   float lx = f.light_dir[0], ly = f.light_dir[1], lz = f.light_dir[2];
-  /* The shadow map's coordinates of the rays: positions in texels and depth in world units,
-   * each linear in t; and the half-pixel offset across the view and the light (eq. 10), whose
-   * length per unit of t is half a pixel's footprint at unit distance. */
+  /* The shadow map's coordinates of the eye (scalars), and the half-pixel offset across the
+   * view and the light (eq. 10) in texels per unit of t: half a pixel's footprint at unit
+   * distance. */
   float pix = 0.5f * length((float3)(f.step_x[0], f.step_x[1], f.step_x[2]));
   float ox = ex - sh.origin[0], oy = ey - sh.origin[1], oz = ez - sh.origin[2];
-  vf s0 = (vf)((ox * sh.u[0] + oy * sh.u[1] + oz * sh.u[2]) * sh.inv_texel);
-  vf r0 = (vf)((ox * sh.v[0] + oy * sh.v[1] + oz * sh.v[2]) * sh.inv_texel);
-  vf z0 = (vf)(ox * sh.w[0] + oy * sh.w[1] + oz * sh.w[2]);
-  vf ds = (dx * sh.u[0] + dy * sh.u[1] + dz * sh.u[2]) * sh.inv_texel;
-  vf dr = (dx * sh.v[0] + dy * sh.v[1] + dz * sh.v[2]) * sh.inv_texel;
-  vf zd = dx * sh.w[0] + dy * sh.w[1] + dz * sh.w[2];
-  vf nx = dy * lz - dz * ly, ny = dz * lx - dx * lz, nz = dx * ly - dy * lx;
-  vf nl = sqrt(nx * nx + ny * ny + nz * nz);
-  /* A ray along the light has no preferred side: any direction across it will do. */
-  vi along = nl < 1e-6f;
-  nl = pix * sh.inv_texel / fmax(nl, 1e-6f);
-  nx = select(nx * nl, (vf)(sh.u[0] * pix * sh.inv_texel), along);
-  ny = select(ny * nl, (vf)(sh.u[1] * pix * sh.inv_texel), along);
-  nz = select(nz * nl, (vf)(sh.u[2] * pix * sh.inv_texel), along);
-  vf os = nx * sh.u[0] + ny * sh.u[1] + nz * sh.u[2];
-  vf or_ = nx * sh.v[0] + ny * sh.v[1] + nz * sh.v[2];
-  vf cos_th = dx * lx + dy * ly + dz * lz; /* Cosine of the scattering angle. */
+  float su[3] = {sh.u[0] * sh.inv_texel, sh.u[1] * sh.inv_texel, sh.u[2] * sh.inv_texel};
+  float sv[3] = {sh.v[0] * sh.inv_texel, sh.v[1] * sh.inv_texel, sh.v[2] * sh.inv_texel};
+  float s0 = ox * su[0] + oy * su[1] + oz * su[2];
+  float r0 = ox * sv[0] + oy * sv[1] + oz * sv[2];
+  float z0 = ox * sh.w[0] + oy * sh.w[1] + oz * sh.w[2];
+  vf os, or_;
+  {
+    vf nx = dy * lz - dz * ly, ny = dz * lx - dx * lz, nz = dx * ly - dy * lx;
+    vf nl = sqrt(nx * nx + ny * ny + nz * nz);
+    /* A ray along the light has no preferred side: any direction across it will do. */
+    vi along = nl < 1e-6f;
+    nl = pix / fmax(nl, 1e-6f);
+    nx = select(nx * nl, (vf)(sh.u[0] * pix), along);
+    ny = select(ny * nl, (vf)(sh.u[1] * pix), along);
+    nz = select(nz * nl, (vf)(sh.u[2] * pix), along);
+    os = nx * su[0] + ny * su[1] + nz * su[2];
+    or_ = nx * sv[0] + ny * sv[1] + nz * sv[2];
+  }
 
   vf tr = 1.0f, cr = 0.0f, cg = 0.0f, cb = 0.0f;
   for (int v = 0; v < nvol; v++) {
     __global const float *rec = vols + v * VOL_STRIDE;
     /* The rays' interval inside the tight box, clipped to [near, opaque depth]. */
     vf t0 = f.near_, t1 = tend;
-    vf e[3] = {(vf)ex, (vf)ey, (vf)ez}, d[3] = {dx, dy, dz};
-    for (int k = 0; k < 3; k++) {
-      vf inv = 1.0f / d[k];
-      vf ta = (rec[VOL_TMIN + k] - e[k]) * inv, tb = (rec[VOL_TMAX + k] - e[k]) * inv;
-      /* A ray parallel to the slab is inside it everywhere or nowhere. */
-      vi par = d[k] == 0.0f;
-      vi in = (e[k] >= rec[VOL_TMIN + k]) & (e[k] <= rec[VOL_TMAX + k]);
-      ta = select(ta, select((vf)INFINITY, (vf)-INFINITY, in), par);
-      tb = select(tb, select((vf)-INFINITY, (vf)INFINITY, in), par);
-      t0 = fmax(t0, fmin(ta, tb));
-      t1 = fmin(t1, fmax(ta, tb));
+    {
+      vf e[3] = {(vf)ex, (vf)ey, (vf)ez}, d[3] = {dx, dy, dz};
+      for (int k = 0; k < 3; k++) {
+        vf inv = 1.0f / d[k];
+        vf ta = (rec[VOL_TMIN + k] - e[k]) * inv, tb = (rec[VOL_TMAX + k] - e[k]) * inv;
+        /* A ray parallel to the slab is inside it everywhere or nowhere. */
+        vi par = d[k] == 0.0f;
+        vi in = (e[k] >= rec[VOL_TMIN + k]) & (e[k] <= rec[VOL_TMAX + k]);
+        ta = select(ta, select((vf)INFINITY, (vf)-INFINITY, in), par);
+        tb = select(tb, select((vf)-INFINITY, (vf)INFINITY, in), par);
+        t0 = fmax(t0, fmin(ta, tb));
+        t1 = fmin(t1, fmax(ta, tb));
+      }
     }
     vi act = (t0 < t1) & (tr > VOL_T_MIN);
     if (!any(act))
@@ -185,33 +192,39 @@ __kernel void volumes(vfx_frame_t f, vfx_shadow_t sh, __global const float *rest
 
     int gx = as_int(rec[VOL_DIMS]), gy = as_int(rec[VOL_DIMS + 1]), gz = as_int(rec[VOL_DIMS + 2]);
     __global const float4 *grid = data + as_int(rec[VOL_OFF]);
-    /* Grid coordinates along the ray, linear in t: voxel i's centre is at i. */
-    float bx = ex - rec[VOL_BMIN], by = ey - rec[VOL_BMIN + 1], bz = ez - rec[VOL_BMIN + 2];
-    vf g0x = bx * rec[VOL_INV] - 0.5f, g0y = by * rec[VOL_INV + 1] - 0.5f,
-       g0z = bz * rec[VOL_INV + 2] - 0.5f;
-    vf gdx = dx * rec[VOL_INV], gdy = dy * rec[VOL_INV + 1], gdz = dz * rec[VOL_INV + 2];
+    /* Grid coordinates of the eye, in which voxel i's centre is at i. */
+    float ix = rec[VOL_INV], iy = rec[VOL_INV + 1], iz = rec[VOL_INV + 2];
+    float g0x = (ex - rec[VOL_BMIN]) * ix - 0.5f, g0y = (ey - rec[VOL_BMIN + 1]) * iy - 0.5f,
+          g0z = (ez - rec[VOL_BMIN + 2]) * iz - 0.5f;
 
     float sigma = rec[VOL_SIGMA], g = rec[VOL_PHASE_G];
     /* Henyey-Greenstein, scaled by 4 pi so that an isotropic medium (g = 0) has phase 1. */
-    vf hg = 1.0f + g * g - 2.0f * g * cos_th;
+    vf hg = 1.0f + g * g - 2.0f * g * (dx * lx + dy * ly + dz * lz);
     vf phase = (1.0f - g * g) / (hg * sqrt(hg));
-    vf lr = f.light_rgb[0] * phase, lg = f.light_rgb[1] * phase, lb = f.light_rgb[2] * phase;
-    float ar = rec[VOL_ALBEDO], ag = rec[VOL_ALBEDO + 1], ab = rec[VOL_ALBEDO + 2];
+    float lr = f.light_rgb[0] * rec[VOL_ALBEDO], lg = f.light_rgb[1] * rec[VOL_ALBEDO + 1],
+          lb = f.light_rgb[2] * rec[VOL_ALBEDO + 2];
+    float ar = f.ambient * rec[VOL_ALBEDO], ag = f.ambient * rec[VOL_ALBEDO + 1],
+          ab = f.ambient * rec[VOL_ALBEDO + 2];
 
     for (int i = 0; i < n; i++) {
       vf t = t0 + ((float)i + 0.5f) * dt;
       vf sig, tl;
-      vol_trilinear(grid, gx, gy, gz, g0x + t * gdx, g0y + t * gdy, g0z + t * gdz, &sig, &tl);
+      vol_trilinear(grid, gx, gy, gz, g0x + t * (dx * ix), g0y + t * (dy * iy), g0z + t * (dz * iz),
+                    &sig, &tl);
       sig = select((vf)0.0f, sigma * sig, act);
       if (!any(sig > 0.0f))
         continue;
-      vf shade = vol_shadow(smap, smap_pitch, &sh, t, dt, s0, ds, r0, dr, z0, zd, os, or_);
-      vf direct = tl * shade;
-      vf a = 1.0f - exp(-sig * dt);
-      vf w = tr * a;
-      cr += w * ar * fma(lr, direct, f.ambient);
-      cg += w * ag * fma(lg, direct, f.ambient);
-      cb += w * ab * fma(lb, direct, f.ambient);
+      vf direct = tl * phase;
+      if (sh.enabled) {
+        vf ds = dx * su[0] + dy * su[1] + dz * su[2];
+        vf dr = dx * sv[0] + dy * sv[1] + dz * sv[2];
+        vf dw = dx * sh.w[0] + dy * sh.w[1] + dz * sh.w[2];
+        direct *= vol_shadow(smap, smap_pitch, &sh, t, dt, s0, ds, r0, dr, z0, dw, os, or_);
+      }
+      vf w = tr * (1.0f - exp(-sig * dt));
+      cr += w * fma(lr, direct, ar);
+      cg += w * fma(lg, direct, ag);
+      cb += w * fma(lb, direct, ab);
       tr -= w;
       if (all((tr <= VOL_T_MIN) | ~act))
         break;
