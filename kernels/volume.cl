@@ -16,13 +16,14 @@
  *
  * Light shafts (paper 002, §3.3): the shadow term of sample i is the mean of VOL_SHADOW_TAPS
  * shadow-map tests spread along its segment [t_(i-1/2), t_(i+1/2)], alternately half a pixel's
- * footprint either side of the ray across the view and the light (eq. 10). The paper takes four
- * such points, at the segment's ends, shared with the neighbours; a ray crossing the slanted
- * sheets of light between occluders meets a shadow edge in most segments, and with only the
- * ends tested the error of each crossing depends on where the edge falls between them, which
- * draws bands that follow the sample spacing. Tests inside the segment are cheap (one load
- * each) and shrink that error to 1 / (2 VOL_SHADOW_TAPS) of a segment, below what the eye sees,
- * while the lateral offsets blend a shaft's edge across the pixel.
+ * footprint either side of the ray across the view and the light (eq. 10), and of as many
+ * again where those disagree. The paper takes four such points, at the segment's ends, shared
+ * with the neighbours; a ray crossing the slanted sheets of light between occluders meets a
+ * shadow edge in many segments, and with only the ends tested the error of each crossing
+ * depends on where the edge falls between them, which draws bands that follow the sample
+ * spacing. Tests inside the segment are cheap (one load each) and shrink that error to
+ * 1 / (4 VOL_SHADOW_TAPS) of a segment where it matters, below what the eye sees, while the
+ * lateral offsets blend a shaft's edge across the pixel.
  *
  * Like the objects kernel, a work-item shades VOL_PACKET adjacent pixels of a row in the lanes
  * of a float8, so that PoCL's code is vector code; grid lookups gather through private arrays.
@@ -92,22 +93,37 @@ static inline vf vol_lit(__global const float *restrict smap, int pitch, const v
 }
 
 /*
- * The shadow term of the segment [t - dt / 2, t + dt / 2] of the packet's rays: the mean of
- * VOL_SHADOW_TAPS tests spread evenly along it, alternately half a pixel either side of the ray
- * (paper 002, §3.3, with more points per segment than its four). On the ray the map position is
- * linear in t: (s0 + t ds, r0 + t dr, z0 + t dz), s0, r0 and z0 those of the eye; (os, or) is
- * the half-pixel offset across the ray per unit of t.
+ * The shadow test of the points at fraction (k + 0.5) / (2 VOL_SHADOW_TAPS) of the segments
+ * [t - dt / 2, t + dt / 2], half a pixel to one side of the ray or the other by (k / 2) % 2:
+ * 1 lit, 0 shadowed. On the ray the map position is linear in t: (s0 + t ds, r0 + t dr, z0 +
+ * t dz), s0, r0 and z0 those of the eye; (os, or) is the half-pixel offset per unit of t.
+ */
+static inline vf vol_tap(__global const float *restrict smap, int pitch, const vfx_shadow_t *sh,
+                         int k, vf t, vf dt, float s0, vf ds, float r0, vf dr, float z0, vf dz,
+                         vf os, vf or_) {
+  vf tk = t + dt * ((k + 0.5f) / (2 * VOL_SHADOW_TAPS) - 0.5f);
+  vf s = k & 2 ? ds - os : ds + os, r = k & 2 ? dr - or_ : dr + or_;
+  return vol_lit(smap, pitch, sh, s0 + tk * s, r0 + tk * r, z0 + tk * dz);
+}
+
+/*
+ * The shadow term of the segments [t - dt / 2, t + dt / 2] of the packet's rays (paper 002,
+ * §3.3, with more points than its four): the mean of VOL_SHADOW_TAPS tests spread along each
+ * segment, alternately either side of the ray; where they disagree for some ray, the segment
+ * holds a shadow edge and VOL_SHADOW_TAPS more tests between them refine it. Most segments are
+ * wholly lit or wholly shadowed and cost the first set only.
  */
 static inline vf vol_shadow(__global const float *restrict smap, int pitch, const vfx_shadow_t *sh,
                             vf t, vf dt, float s0, vf ds, float r0, vf dr, float z0, vf dz, vf os,
                             vf or_) {
   vf sum = 0.0f;
-  for (int k = 0; k < VOL_SHADOW_TAPS; k++) {
-    vf tk = t + dt * ((k + 0.5f) / VOL_SHADOW_TAPS - 0.5f);
-    vf s = k & 1 ? ds - os : ds + os, r = k & 1 ? dr - or_ : dr + or_;
-    sum += vol_lit(smap, pitch, sh, s0 + tk * s, r0 + tk * r, z0 + tk * dz);
-  }
-  return sum * (1.0f / VOL_SHADOW_TAPS);
+  for (int k = 0; k < 2 * VOL_SHADOW_TAPS; k += 2)
+    sum += vol_tap(smap, pitch, sh, k, t, dt, s0, ds, r0, dr, z0, dz, os, or_);
+  if (all((sum == 0.0f) | (sum == (float)VOL_SHADOW_TAPS)))
+    return sum * (1.0f / VOL_SHADOW_TAPS);
+  for (int k = 1; k < 2 * VOL_SHADOW_TAPS; k += 2)
+    sum += vol_tap(smap, pitch, sh, k, t, dt, s0, ds, r0, dr, z0, dz, os, or_);
+  return sum * (0.5f / VOL_SHADOW_TAPS);
 }
 
 /*
