@@ -203,12 +203,12 @@ static int images(renderer_t *r, const char *dir) {
   rvolume_t fog = {.source = VOLUME_GRID,
                    .min = {-3, 0, -3},
                    .max = {3, 3, 3},
-                   .density = 0.6f,
-                   .albedo = {0.9f, 0.9f, 0.9f},
+                   .density = 0.8f,
+                   .albedo = {0.8f, 0.85f, 0.9f},
                    .samples = 8,
                    .grid = &g};
   robject_t plate[2] = {
-      {.shape = SHAPE_PLANE, .scale = {1, 1, 1}, .color = {0.5f, 0.5f, 0.5f}},
+      {.shape = SHAPE_PLANE, .scale = {1, 1, 1}, .color = {0.25f, 0.25f, 0.25f}},
       {.shape = SHAPE_BOX,
        .position = {0, 1.4f, 0},
        .scale = {4.5f, 0.05f, 4.5f},
@@ -218,7 +218,8 @@ static int images(renderer_t *r, const char *dir) {
   render_scene_t cut = s;
   cut.objects = plate, cut.nobjects = 2;
   cut.volumes = &fog, cut.nvolumes = 1;
-  cut.camera.eye[0] = 6, cut.camera.eye[1] = 3.6f, cut.camera.eye[2] = 10;
+  cut.light.intensity = 1.2f;
+  cut.camera.eye[0] = 4.5f, cut.camera.eye[1] = 2.8f, cut.camera.eye[2] = 7.5f;
   cut.camera.target[0] = 0, cut.camera.target[1] = 1.2f, cut.camera.target[2] = 0;
   int rc = write_png(r, &cut, 768, 768, dir, "volume_cut.png");
   renderer_destroy(r);
