@@ -62,14 +62,15 @@ static inline void vol_pair(__global const float4 *restrict g, vi b, vf fx, vf *
  */
 static inline void vol_trilinear(__global const float4 *restrict g, int nx, int ny, int nz, vf x,
                                  vf y, vf z, vf *d, vf *l) {
-  x = clamp(x, 0.0f, (float)(nx - 1));
-  y = clamp(y, 0.0f, (float)(ny - 1));
-  z = clamp(z, 0.0f, (float)(nz - 1));
-  vf fx = floor(x), fy = floor(y), fz = floor(z);
-  vi ix = convert_int8(fx), iy = convert_int8(fy), iz = convert_int8(fz);
+  /* Clamped first, the coordinates are non-negative, so conversion (which truncates) is floor:
+   * the builtin floor costs a dozen instructions here. fmax also turns a NaN into 0. */
+  x = fmin(fmax(x, 0.0f), (float)(nx - 1));
+  y = fmin(fmax(y, 0.0f), (float)(ny - 1));
+  z = fmin(fmax(z, 0.0f), (float)(nz - 1));
+  vi ix = convert_int8(x), iy = convert_int8(y), iz = convert_int8(z);
   vi sy = select((vi)nx, (vi)0, iy >= ny - 1);
   vi sz = select((vi)(nx * ny), (vi)0, iz >= nz - 1);
-  fx = x - fx, fy = y - fy, fz = z - fz;
+  vf fx = x - convert_float8(ix), fy = y - convert_float8(iy), fz = z - convert_float8(iz);
   vi b = ix + nx * (iy + ny * iz);
   vf d00, d10, d01, d11, l00, l10, l01, l11;
   vol_pair(g, b, fx, &d00, &l00);
@@ -85,7 +86,8 @@ static inline void vol_trilinear(__global const float4 *restrict g, int nx, int 
 static inline vf vol_lit(__global const float *restrict smap, int pitch, const vfx_shadow_t *sh,
                          vf s, vf r, vf z) {
   float top = (float)(sh->size - 1);
-  vi i = convert_int8(clamp(floor(s), 0.0f, top)), j = convert_int8(clamp(floor(r), 0.0f, top));
+  /* Clamped to [0, top] first, truncation is floor (see vol_trilinear). */
+  vi i = convert_int8(fmin(fmax(s, 0.0f), top)), j = convert_int8(fmin(fmax(r, 0.0f), top));
   vi at = j * pitch + i;
   vf stored = (vf)(smap[at.s0], smap[at.s1], smap[at.s2], smap[at.s3], smap[at.s4], smap[at.s5],
                    smap[at.s6], smap[at.s7]);
