@@ -231,10 +231,10 @@ static int light_grid(vol_entry_t *e, const float *dens, float sigma, const floa
           t_up =
               w00 * e->lgrid[i00] + w10 * e->lgrid[i10] + w01 * e->lgrid[i01] + w11 * e->lgrid[i11];
           s_up = w00 * sg[i00] + w10 * sg[i10] + w01 * sg[i01] + w11 * sg[i11];
-          e->lgrid[at] = (float)(t_up * exp(-0.5 * step * (here + s_up)));
+          e->lgrid[at] = (float)t_up * expf((float)(-0.5 * step * (here + s_up)));
         } else {
           /* The ray leaves the box within about half a step. */
-          e->lgrid[at] = (float)exp(-0.5 * step * here);
+          e->lgrid[at] = expf((float)(-0.5 * step * here));
         }
       }
   }
