@@ -6,11 +6,11 @@
  * A volume reaches the kernel as VOL_STRIDE floats, and its grid as dims voxels (x fastest) of a
  * float4 buffer: voxel i holds (d[i], d[i + x], T[i], T[i + x]), the density d and the light
  * transmittance T (from the voxel centre towards the light through the volume) of the voxel and
- * of its neighbour along x (itself at the last x), so that a trilinear lookup of both takes
- * four loads instead of sixteen. A grid spans the volume's box, voxel centres at box_min + (i +
- * 0.5) * cell, and is interpolated trilinearly with the edge voxels extended to the faces. The
- * kernel samples only inside the 'tight' box, the part of the volume where the density can be
- * non-zero (empty-space skipping).
+ * of its neighbour along x (itself at the last x), so that the sixteen values a trilinear lookup
+ * of both needs lie in four 16-byte runs (one cache line each) instead of sixteen places. A grid
+ * spans the volume's box, voxel centres at box_min + (i + 0.5) * cell, and is interpolated
+ * trilinearly with the edge voxels extended to the faces. The kernel samples only inside the
+ * 'tight' box, the part of the volume where the density can be non-zero (empty-space skipping).
  */
 #ifndef VOLFX_KERNELS_VOLUME_H
 #define VOLFX_KERNELS_VOLUME_H
@@ -27,8 +27,8 @@
 #define VOL_PHASE_G 21 /* Henyey-Greenstein asymmetry g in (-1, 1). */
 #define VOL_STRIDE 32
 
-/* Pixels of a row that a volume work-item shades, one per vector lane. */
-#define VOL_PACKET 8
+/* Pixels of a row that a volume work-item shades, one per vector lane (a float16). */
+#define VOL_PACKET 16
 
 /* Shadow-map tests per sample segment (kernels/volume.cl, vol_shadow). */
 #define VOL_SHADOW_TAPS 4
@@ -55,7 +55,7 @@ typedef struct vfx_shadow {
   int enabled;
 } vfx_shadow_t;
 
-/* Texels a shadow-map work-item renders, one per lane. */
-#define SHADOW_PACKET 8
+/* Texels a shadow-map work-item renders, one per lane (a float16). */
+#define SHADOW_PACKET 16
 
 #endif
