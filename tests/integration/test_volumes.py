@@ -154,11 +154,18 @@ def side_limit(s):
         with open(os.path.join(srv.data_dir, "g.f32"), "wb") as f:
             f.write(f32([0.25] * 9 * 2 * 2))
         c = srv.connect()
+        before = c.ok("scene.get", {"scene": "main", "path": "volumes"})[0]
         vol = {"source": "file", "file": "g.f32", "dims": [9, 2, 2]}
         expect_error(s, c, "scene.set", {"scene": "main", "patch": {"volumes": [vol]}}, E_PARAMS,
                      "volumes.0.dims.0", "dims over a configured cloud_side of 8")
-        s.eq(c.ok("scene.get", {"scene": "main", "path": "volumes"})[0], [],
+        s.eq(c.ok("scene.get", {"scene": "main", "path": "volumes"})[0], before,
              "the refused volume was not added")
+        with open(os.path.join(srv.data_dir, "h.f32"), "wb") as f:
+            f.write(f32([0.25] * 8 * 2 * 2))
+        c.ok("scene.set", {"scene": "main", "patch": {"volumes": [
+            {"source": "file", "file": "h.f32", "dims": [8, 2, 2]}]}})
+        s.eq(c.ok("scene.get", {"scene": "main", "path": "volumes.0.dims"})[0], [8, 2, 2],
+             "dims at the configured limit are accepted")
 
 
 @T
