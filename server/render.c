@@ -134,8 +134,10 @@ int renderer_render(renderer_t *r, const render_scene_t *scene, const render_par
    * the waves, an objects pass with nothing to draw need not run either. A pass that runs after
    * the waves must clear 'fused'; one between the objects and the waves, 'objects_optional'. */
   int fluid = (p->layers & LAYER_FLUID) && scene->fluid.count > 0;
+  int volumes = (p->layers & (LAYER_VOLUMES | LAYER_CLOUD)) && p->aov == AOV_BEAUTY &&
+                (scene->nvolumes > 0 || scene->cloud.grid != NULL);
   int fused = waves && beauty && p->format != PROTO_FMT_RGBAF32;
-  r->objects_optional = fused && !fluid;
+  r->objects_optional = fused && !fluid && !volumes;
 
   double t = now_ms();
   int rc = render_pass_objects(r, scene, p, err, errlen);
@@ -150,6 +152,15 @@ int renderer_render(renderer_t *r, const render_scene_t *scene, const render_par
       return rc;
     if (ran)
       add_pass(out, "fluid", now_ms() - t);
+  }
+
+  if (volumes) {
+    t = now_ms();
+    int ran;
+    if ((rc = render_pass_volumes(r, scene, p->layers, &ran, err, errlen)) != 0)
+      return rc;
+    if (ran)
+      add_pass(out, "volumes", now_ms() - t);
   }
 
   if (waves) {
@@ -266,6 +277,17 @@ static int warm_up(renderer_t *r, char *err, size_t errlen) {
       {.shape = SHAPE_PLANE, .scale = {1, 1, 1}, .color = {1, 1, 1}},
       {.shape = SHAPE_MESH, .scale = {1, 1, 1}, .color = {0, 0, 1}, .mesh = &mesh},
   };
+  /* A small grid volume around the objects, so the volume and shadow-map kernels run too. */
+  static float cells[8] = {0.5f, 1, 1, 0.5f, 1, 0.5f, 0.5f, 1};
+  density_grid_t grid = {.dims = {2, 2, 2}, .data = cells};
+  atomic_init(&grid.refs, 1);
+  rvolume_t vol = {.source = VOLUME_GRID,
+                   .min = {-2, 0, -1},
+                   .max = {2, 2, 1},
+                   .density = 1,
+                   .albedo = {0.8f, 0.8f, 0.8f},
+                   .samples = 4,
+                   .grid = &grid};
   /* A few particles where the camera sees them, so the fluid kernel runs too. */
   static const float drops[9] = {0, 1, 0, 0.2f, 1.1f, 0, -0.15f, 0.95f, 0.1f};
   render_scene_t scene = {
@@ -287,6 +309,8 @@ static int warm_up(renderer_t *r, char *err, size_t errlen) {
       .nobjects = 4,
       .waves = &wave,
       .nwaves = 1,
+      .volumes = &vol,
+      .nvolumes = 1,
       .tone_map = TONE_ACES,
   };
   atomic_init(&scene.refs, 1);
@@ -299,8 +323,12 @@ static int warm_up(renderer_t *r, char *err, size_t errlen) {
     rc = renderer_render(r, &scene, &p, &out, err, errlen);
     free(out.bytes);
   }
-  /* Drop the BVH of the stack mesh before it goes out of scope. */
+  /* Drop the BVH of the stack mesh and the volume caches' grid references before they go out
+   * of scope. */
   render_bvh_forget(r);
+  render_volume_free(r);
+  if (rc == 0)
+    rc = render_volume_init(r, err, errlen);
   return rc;
 }
 
@@ -321,7 +349,8 @@ int renderer_create(const renderer_opts_t *opts, renderer_t **out, char *err, si
       (r->tonemap = cl_dev_kernel(&r->dev, "tonemap", err, errlen)) == NULL ||
       (r->waves = cl_dev_kernel(&r->dev, "waves", err, errlen)) == NULL ||
       (r->waves_march = cl_dev_kernel(&r->dev, "waves_march", err, errlen)) == NULL ||
-      (r->fluid = cl_dev_kernel(&r->dev, "fluid", err, errlen)) == NULL)
+      (r->fluid = cl_dev_kernel(&r->dev, "fluid", err, errlen)) == NULL ||
+      render_volume_init(r, err, errlen) != 0)
     goto fail;
   r->objects_local[0] = OBJECTS_LX;
   r->objects_local[1] = OBJECTS_LY;
@@ -368,6 +397,7 @@ void renderer_destroy(renderer_t *r) {
   if (r->objects && r->tonemap && r->waves)
     cl_dev_save_binary(&r->dev);
   render_bvh_forget(r);
+  render_volume_free(r);
   cl_mem bufs[] = {r->linear,    r->depth,      r->rgba8, r->objs,        r->nodes,    r->tris,
                    r->wave_recs, r->wave_lists, r->hbuf,  r->fluid_cells, r->fluid_pos};
   for (size_t i = 0; i < sizeof bufs / sizeof bufs[0]; i++) {

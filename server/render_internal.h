@@ -63,6 +63,7 @@ struct renderer {
   size_t cap_h;
   cl_mem fluid_cells, fluid_pos; /* The fluid grid: cap_fcells ints and cap_fpos floats. */
   size_t cap_fcells, cap_fpos;
+  struct vol_state *vol; /* The volumes pass's kernels, caches and buffers (render_volume.c). */
 
   /* The BVH on the device holds these mesh objects. Comparing them each frame, rather than the
    * scene pointer, keeps the BVH across snapshots that changed other things (the camera, a
@@ -150,5 +151,16 @@ int render_pass_waves(renderer_t *r, const render_scene_t *scene, int mode, int 
 /* render_fluid.c: the particles as metaballs, depth-tested against r->depth. */
 int render_pass_fluid(renderer_t *r, const render_scene_t *scene, int *ran, char *err,
                       size_t errlen);
+
+/* render_volume.c: creates the volume kernels and state (render_volume_free undoes it, also
+ * after a failure). Returns 0, or -1 with 'err' set. */
+int render_volume_init(renderer_t *r, char *err, size_t errlen);
+void render_volume_free(renderer_t *r);
+
+/* render_volume.c: the scene's volumes (LAYER_VOLUMES in 'layers') and the cloud (LAYER_CLOUD),
+ * lit through the objects' shadow map and composited over r->linear up to r->depth. '*ran'
+ * says whether a kernel ran. */
+int render_pass_volumes(renderer_t *r, const render_scene_t *scene, unsigned layers, int *ran,
+                        char *err, size_t errlen);
 
 #endif

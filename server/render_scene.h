@@ -116,7 +116,12 @@ typedef enum { VOLUME_NOISE, VOLUME_GRID } volume_source_t;
  * d(P) per world unit, where d is the procedural noise (VOLUME_NOISE) or the grid trilinearly
  * interpolated over the box (VOLUME_GRID, d = 0 outside). Rays are sampled only between where
  * they enter the box and min(where they leave it, the opaque depth), 'samples' evenly spaced
- * samples; single scattering of the light with the given albedo.
+ * samples; single scattering of the light with the given albedo. Grid voxel (i, j, k) is centred
+ * at min + (i + 0.5, j + 0.5, k + 0.5) * (max - min) / dims, and the edge voxels extend to the
+ * faces. The renderer skips a volume whose box is empty, whose density is not positive, whose
+ * samples are below 1 or whose grid is missing (render_volume.c, usable()), and it rebuilds its
+ * light grid whenever 'grid' is a different pointer, so a changed density must come as a new
+ * grid rather than be written into a published one.
  */
 typedef struct rvolume {
   volume_source_t source;
@@ -127,6 +132,7 @@ typedef struct rvolume {
   density_grid_t *grid; /* VOLUME_GRID: a counted reference; NULL otherwise. */
   uint32_t seed;        /* VOLUME_NOISE: the noise's seed. */
   float noise_scale;    /* VOLUME_NOISE: feature size, world units. */
+  float phase_g;        /* Henyey-Greenstein asymmetry in (-1, 1); 0 scatters evenly. */
 } rvolume_t;
 
 typedef struct render_scene {

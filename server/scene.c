@@ -192,6 +192,255 @@ static mesh_t *mesh_get(const char *file, const char *path, scene_error_t *err) 
   return m;
 }
 
+/* ---- Volume files ---- */
+
+static uint32_t g_volume_side = 256; /* Largest side of a volume file's grid (cloud_side). */
+
+void scene_set_volume_limit(uint32_t side) {
+  g_volume_side = side;
+}
+
+/* One loaded volume file. The cache holds one reference; snapshots hold their own. */
+typedef struct grid_entry {
+  char *path; /* Resolved (real) path. */
+  dev_t dev;
+  ino_t ino;
+  off_t size;
+  struct timespec mtime;
+  uint32_t dims[3];
+  int u8;
+  density_grid_t *grid;
+  struct grid_entry *next;
+} grid_entry_t;
+
+static grid_entry_t *g_grids; /* Guarded by g_cache_lock. */
+
+static void grid_entry_free(grid_entry_t *e) {
+  density_grid_unref(e->grid);
+  free(e->path);
+  free(e);
+}
+
+/* Drops cached grids no snapshot uses any more (see cache_prune). */
+static void grid_cache_prune(void) {
+  pthread_mutex_lock(&g_cache_lock);
+  for (grid_entry_t **pp = &g_grids; *pp;) {
+    grid_entry_t *e = *pp;
+    if (atomic_load(&e->grid->refs) <= 1) {
+      *pp = e->next;
+      grid_entry_free(e);
+    } else {
+      pp = &e->next;
+    }
+  }
+  pthread_mutex_unlock(&g_cache_lock);
+}
+
+/*
+ * Reads the densities of 'real' ('st' its stat) into a new grid of 'dims', u8 (byte / 255) or
+ * f32 (little-endian, finite and non-negative). 'file' is the client's name and 'index' the
+ * volume's place in volumes[], for errors. NULL with 'err' set on failure.
+ */
+static density_grid_t *grid_load(const char *real, const struct stat *st, const char *file,
+                                 int index, const uint32_t dims[3], int u8, scene_error_t *err) {
+  char p[64];
+  snprintf(p, sizeof p, "volumes.%d.file", index);
+  size_t n = (size_t)dims[0] * dims[1] * dims[2], want = n * (u8 ? 1 : 4);
+  if ((uint64_t)st->st_size != want) {
+    set_err(err, PROTO_E_INVALID_PARAMS, p,
+            "%s: \"%.64s\" holds %lld bytes, but dims %ux%ux%u of %s need %zu", p, file,
+            (long long)st->st_size, dims[0], dims[1], dims[2], u8 ? "u8" : "f32", want);
+    return NULL;
+  }
+  density_grid_t *g = density_grid_new(dims);
+  unsigned char *raw = malloc(want ? want : 1);
+  if (!g || !raw) {
+    density_grid_unref(g);
+    free(raw);
+    set_err(err, PROTO_E_INTERNAL, p, "%s: out of memory for a %zu-voxel grid", p, n);
+    return NULL;
+  }
+  FILE *f = fopen(real, "rb");
+  size_t got = f ? fread(raw, 1, want, f) : 0;
+  if (f)
+    fclose(f);
+  if (got != want) {
+    density_grid_unref(g);
+    free(raw);
+    set_err(err, PROTO_E_INVALID_PARAMS, p, "%s: cannot read \"%.64s\"", p, file);
+    return NULL;
+  }
+  for (size_t i = 0; i < n; i++) {
+    float v;
+    if (u8) {
+      v = raw[i] / 255.0f;
+    } else {
+      uint32_t b = (uint32_t)raw[4 * i] | (uint32_t)raw[4 * i + 1] << 8 |
+                   (uint32_t)raw[4 * i + 2] << 16 | (uint32_t)raw[4 * i + 3] << 24;
+      memcpy(&v, &b, sizeof v);
+      if (!isfinite(v) || v < 0) {
+        size_t x = i % dims[0], y = i / dims[0] % dims[1], z = i / dims[0] / dims[1];
+        density_grid_unref(g);
+        free(raw);
+        set_err(err, PROTO_E_INVALID_PARAMS, p,
+                "%s: \"%.64s\" has density %g at voxel (%zu, %zu, %zu); densities must be "
+                "finite and non-negative",
+                p, file, (double)v, x, y, z);
+        return NULL;
+      }
+    }
+    g->data[i] = v;
+  }
+  free(raw);
+  return g;
+}
+
+/* A counted reference to the grid of volume file 'file' for volumes['index'], loaded or cached
+ * (by resolved path, inode, size, mtime, dims and format). */
+static density_grid_t *grid_get(const char *file, int index, const uint32_t dims[3], int u8,
+                                scene_error_t *err) {
+  char real[PATH_MAX], why[256], p[64];
+  struct stat st;
+  snprintf(p, sizeof p, "volumes.%d.file", index);
+  if (datapath_resolve(g_data_dir, file, 1, real, PATH_MAX, why, sizeof why, NULL) != 0) {
+    set_err(err, PROTO_E_INVALID_PARAMS, p, "%s: %s", p, why);
+    return NULL;
+  }
+  if (stat(real, &st) != 0 || !S_ISREG(st.st_mode)) {
+    set_err(err, PROTO_E_INVALID_PARAMS, p, "%s: \"%.64s\" is not a regular file", p, file);
+    return NULL;
+  }
+  pthread_mutex_lock(&g_cache_lock);
+  density_grid_t *g = NULL;
+  for (grid_entry_t **pp = &g_grids; *pp; pp = &(*pp)->next) {
+    grid_entry_t *e = *pp;
+    if (strcmp(e->path, real) != 0 || memcmp(e->dims, dims, sizeof e->dims) != 0 || e->u8 != u8)
+      continue;
+    if (e->dev == st.st_dev && e->ino == st.st_ino && e->size == st.st_size &&
+        e->mtime.tv_sec == st.st_mtim.tv_sec && e->mtime.tv_nsec == st.st_mtim.tv_nsec) {
+      g = density_grid_ref(e->grid);
+    } else {
+      *pp = e->next;
+      grid_entry_free(e);
+    }
+    break;
+  }
+  if (!g) {
+    g = grid_load(real, &st, file, index, dims, u8, err);
+    if (!g) {
+      pthread_mutex_unlock(&g_cache_lock);
+      return NULL;
+    }
+    grid_entry_t *e = calloc(1, sizeof *e);
+    if (e && (e->path = strdup(real))) {
+      e->dev = st.st_dev;
+      e->ino = st.st_ino;
+      e->size = st.st_size;
+      e->mtime = st.st_mtim;
+      memcpy(e->dims, dims, sizeof e->dims);
+      e->u8 = u8;
+      e->grid = density_grid_ref(g);
+      e->next = g_grids;
+      g_grids = e;
+    } else {
+      free(e);
+    }
+  }
+  pthread_mutex_unlock(&g_cache_lock);
+  return g;
+}
+
+/* The checks of volumes[] that the schema cannot make: boxes, file fields, unique ids. */
+static int check_volumes(const cJSON *doc, scene_error_t *err) {
+  int i = 0;
+  const cJSON *vols = get(doc, "volumes");
+  for (const cJSON *v = vols->child; v; v = v->next, i++) {
+    char p[64];
+    double lo[3], hi[3];
+    const cJSON *b = get(v, "bounds");
+    vec3d(get(b, "min"), lo);
+    vec3d(get(b, "max"), hi);
+    for (int k = 0; k < 3; k++)
+      if (!(hi[k] > lo[k])) {
+        snprintf(p, sizeof p, "volumes.%d.bounds.max", i);
+        return set_err(err, PROTO_E_INVALID_PARAMS, p,
+                       "%s: must be above bounds.min on every axis (%c: %g <= %g)", p, "xyz"[k],
+                       hi[k], lo[k]);
+      }
+    if (strcmp(get(v, "source")->valuestring, "file") == 0) {
+      const cJSON *file = get(v, "file"), *dims = get(v, "dims");
+      if (!file || !file->valuestring[0]) {
+        snprintf(p, sizeof p, "volumes.%d.file", i);
+        return set_err(err, PROTO_E_INVALID_PARAMS, p,
+                       "%s: a file volume needs a file (raw densities under the data directory)",
+                       p);
+      }
+      snprintf(p, sizeof p, "volumes.%d.dims", i);
+      if (!dims)
+        return set_err(err, PROTO_E_INVALID_PARAMS, p, "%s: a file volume needs dims", p);
+      double d[3];
+      vec3d(dims, d);
+      for (int k = 0; k < 3; k++) {
+        snprintf(p, sizeof p, "volumes.%d.dims.%d", i, k);
+        if (d[k] != floor(d[k]))
+          return set_err(err, PROTO_E_INVALID_PARAMS, p, "%s: %g is not an integer", p, d[k]);
+        if (d[k] > g_volume_side)
+          return set_err(err, PROTO_E_INVALID_PARAMS, p,
+                         "%s: %g voxels is over the limit of %u per side (cloud_side)", p, d[k],
+                         g_volume_side);
+      }
+    }
+    const char *id = get(v, "id")->valuestring;
+    int j = 0;
+    for (const cJSON *q = vols->child; id[0] && q != v; q = q->next, j++)
+      if (strcmp(get(q, "id")->valuestring, id) == 0) {
+        snprintf(p, sizeof p, "volumes.%d.id", i);
+        return set_err(err, PROTO_E_INVALID_PARAMS, p, "%s: \"%s\" is already the id of volumes.%d",
+                       p, id, j);
+      }
+  }
+  return 0;
+}
+
+/* Compiles volumes[] into 'rs', loading grid files. Returns 0, or -1 with 'err' set (the
+ * grids taken so far belong to rs and go with it). */
+static int compile_volumes(const cJSON *doc, render_scene_t *rs, scene_error_t *err) {
+  const cJSON *vols = get(doc, "volumes");
+  int n = cJSON_GetArraySize(vols);
+  if (n == 0)
+    return 0;
+  rs->volumes = calloc((size_t)n, sizeof *rs->volumes);
+  if (!rs->volumes)
+    return set_err(err, PROTO_E_INTERNAL, "", "out of memory");
+  int i = 0;
+  for (const cJSON *v = vols->child; v; v = v->next, i++) {
+    rvolume_t *rv = &rs->volumes[i];
+    const cJSON *b = get(v, "bounds");
+    vec3f(get(b, "min"), rv->min);
+    vec3f(get(b, "max"), rv->max);
+    rv->density = (float)get(v, "density")->valuedouble;
+    vec3f(get(v, "albedo"), rv->albedo);
+    rv->samples = (int)get(v, "samples")->valuedouble;
+    rv->phase_g = (float)get(v, "phase_g")->valuedouble;
+    rv->seed = (uint32_t)get(v, "seed")->valuedouble;
+    rv->noise_scale = (float)get(v, "noise_scale")->valuedouble;
+    rs->nvolumes = i + 1;
+    if (strcmp(get(v, "source")->valuestring, "file") == 0) {
+      double d[3];
+      vec3d(get(v, "dims"), d);
+      uint32_t dims[3] = {(uint32_t)d[0], (uint32_t)d[1], (uint32_t)d[2]};
+      rv->source = VOLUME_GRID;
+      rv->grid = grid_get(get(v, "file")->valuestring, i, dims,
+                          strcmp(get(v, "format")->valuestring, "u8") == 0, err);
+      if (!rv->grid)
+        return -1;
+    } else {
+      rv->source = VOLUME_NOISE;
+    }
+  }
+  return 0;
+}
+
 /* ---- Validation and compilation ---- */
 
 static double norm3(const double v[3]) {
@@ -446,6 +695,10 @@ static render_scene_t *compile(const cJSON *doc, particles_t *particles, scene_e
     return NULL;
   }
   compile_fluid(doc, particles, rs);
+  if (compile_volumes(doc, rs, err) != 0) {
+    render_scene_unref(rs);
+    return NULL;
+  }
   return rs;
 }
 
@@ -461,7 +714,7 @@ static render_scene_t *prepare(cJSON *doc, particles_t *particles, scene_error_t
     set_err(err, PROTO_E_INVALID_PARAMS, se.path, "%s", se.message);
     return NULL;
   }
-  if (check_cross(doc, err) != 0 || check_waves(doc, err) != 0 ||
+  if (check_cross(doc, err) != 0 || check_waves(doc, err) != 0 || check_volumes(doc, err) != 0 ||
       check_fluid(doc, particles, err) != 0)
     return NULL;
   double now = get(get(doc, "sim"), "time")->valuedouble;
@@ -477,6 +730,7 @@ static int commit(scene_t *s, cJSON *doc, scene_error_t *err) {
   if (!rs) {
     cJSON_Delete(doc);
     cache_prune();
+    grid_cache_prune();
     return -1;
   }
   cJSON_Delete(s->doc);
@@ -485,6 +739,7 @@ static int commit(scene_t *s, cJSON *doc, scene_error_t *err) {
   s->snapshot = rs;
   s->version++;
   cache_prune();
+  grid_cache_prune();
   return 0;
 }
 
@@ -525,6 +780,7 @@ void scene_destroy(scene_t *s) {
   cJSON_Delete(s->doc);
   free(s);
   cache_prune();
+  grid_cache_prune();
 }
 
 cJSON *scene_get(const scene_t *s, const char *path, scene_error_t *err) {

@@ -33,6 +33,9 @@ extern const sch_field_t scene_schema;
  * that would leave it are refused. NULL refuses every mesh file. */
 void scene_set_data_dir(const char *dir);
 
+/* Sets the largest side of a volume file's grid (the cloud_side limit); 256 until set. */
+void scene_set_volume_limit(uint32_t side);
+
 /*
  * Creates a scene from 'preset' (a document, possibly partial; NULL for all defaults).
  * Returns NULL with 'err' set when the preset does not validate.

@@ -510,6 +510,122 @@ static const sch_field_t fluid_fields[] = {
     {0},
 };
 
+/* Volumes (SPEC §5.3). The defaults make a soft patch of mist two units across standing on the
+ * ground at the origin, thin enough to see through: about 0.5 of the light crosses its width. */
+static const double vol_min[3] = {-1, 0, -1};
+static const double vol_max[3] = {1, 2, 1};
+static const double vol_albedo[3] = {0.9, 0.9, 0.9};
+static const char *const vol_sources[] = {"noise", "file", NULL};
+static const char *const vol_formats[] = {"u8", "f32", NULL};
+
+static const sch_field_t vol_bounds_fields[] = {
+    {.name = "min",
+     .type = SCH_VEC3,
+     .desc = "Lowest corner of the volume's axis-aligned box; below max on every axis.",
+     .unit = "world units",
+     .min = -WORLD,
+     .max = WORLD,
+     .def_vec = vol_min},
+    {.name = "max",
+     .type = SCH_VEC3,
+     .desc = "Highest corner of the volume's box; above min on every axis.",
+     .unit = "world units",
+     .min = -WORLD,
+     .max = WORLD,
+     .def_vec = vol_max},
+    {0},
+};
+
+static const sch_field_t volume_fields[] = {
+    {.name = "id",
+     .type = SCH_STRING,
+     .desc = "Name of the volume for clients; unique within the scene when not empty.",
+     .max = 63,
+     .def_str = ""},
+    {.name = "source",
+     .type = SCH_ENUM,
+     .desc = "Where the density d comes from: seeded fBm value noise (d in [0, 1], faded to 0 "
+             "over the outer 15% of the box), or a raw grid file (format, dims) spanning the "
+             "box, interpolated trilinearly.",
+     .enum_values = vol_sources,
+     .def_str = "noise"},
+    {.name = "file",
+     .type = SCH_STRING,
+     .desc = "For source file: raw densities relative to the server's data directory, x "
+             "fastest, then y, then z, dims[0] x dims[1] x dims[2] values of the given format.",
+     .max = 1023,
+     .flags = SCH_NO_DEFAULT},
+    {.name = "format",
+     .type = SCH_ENUM,
+     .desc = "For source file: u8 (d = byte / 255) or f32 (little-endian floats, finite and "
+             "non-negative).",
+     .enum_values = vol_formats,
+     .def_str = "f32"},
+    {.name = "dims",
+     .type = SCH_VEC3,
+     .desc = "For source file: the grid's voxels along x, y and z; integers from 1 to the "
+             "server's cloud_side limit (server.info).",
+     .unit = "voxels",
+     .min = 1,
+     .max = 1 << 16,
+     .flags = SCH_NO_DEFAULT},
+    {.name = "bounds",
+     .type = SCH_OBJECT,
+     .desc = "The volume's axis-aligned box; nothing is drawn outside it.",
+     .fields = vol_bounds_fields},
+    {.name = "density",
+     .type = SCH_NUMBER,
+     .desc = "Extinction coefficient where d = 1: light crossing a length s of uniform d = 1 "
+             "keeps exp(-density * s) of itself.",
+     .unit = "1/world unit",
+     .min = 0,
+     .max = 1e4,
+     .def = 0.35},
+    {.name = "albedo",
+     .type = SCH_VEC3,
+     .desc = "Single-scattering albedo, linear RGB: the fraction of the extinguished light that "
+             "is scattered rather than absorbed.",
+     .min = 0,
+     .max = 1,
+     .def_vec = vol_albedo},
+    {.name = "samples",
+     .type = SCH_INTEGER,
+     .desc = "Samples per ray, evenly spaced between where the ray enters the volume and "
+             "where it leaves it or meets an opaque object.",
+     .min = 1,
+     .max = 1024,
+     .def = 32},
+    {.name = "phase_g",
+     .type = SCH_NUMBER,
+     .desc = "Henyey-Greenstein asymmetry of the scattering: 0 even, towards 1 forward (bright "
+             "shafts when looking towards the light).",
+     .min = -0.95,
+     .max = 0.95,
+     .def = 0},
+    {.name = "seed",
+     .type = SCH_INTEGER,
+     .desc = "For source noise: the noise's seed; the same seed gives the same volume.",
+     .min = 0,
+     .max = 4294967295.0,
+     .def = 1},
+    {.name = "noise_scale",
+     .type = SCH_NUMBER,
+     .desc = "For source noise: the size of the largest noise features.",
+     .unit = "world units",
+     .min = 0.001,
+     .max = WORLD,
+     .def = 1},
+    {0},
+};
+
+static const sch_field_t volume_item = {
+    .name = "volume",
+    .type = SCH_OBJECT,
+    .desc = "A participating medium in a box (mist, smoke, dust), drawn around the objects with "
+            "single scattering and the objects' shadows (light shafts); SPEC 5.3.",
+    .fields = volume_fields,
+};
+
 static const sch_field_t scene_fields[] = {
     {.name = "camera",
      .type = SCH_OBJECT,
@@ -548,6 +664,11 @@ static const sch_field_t scene_fields[] = {
      .desc = "The SPH particle fluid (SPEC 5.2), drawn as metaballs; its particles are set and "
              "read through fluid.set_particles and fluid.get_particles.",
      .fields = fluid_fields},
+    {.name = "volumes",
+     .type = SCH_ARRAY,
+     .desc = "Volumes of mist or smoke around the objects (layer volumes).",
+     .max = 16,
+     .items = &volume_item},
     {0},
 };
 

@@ -1,0 +1,406 @@
+/*
+ * The volume pass (SPEC §5.3 and the rendering half of §5.4) and the shadow map it reads.
+ *
+ * volumes: every pixel's camera ray is sampled, volume by volume (the host orders them by
+ * distance), only between where it enters the volume's tight box and min(where it leaves it,
+ * the opaque depth of the objects pass): N samples at the midpoints of N equal segments of that
+ * interval (paper 002, eqs. 2-4), so neither the box's faces nor the objects cutting the volume
+ * can produce slice stripes. Front to back (eqs. 5-7, 9), a sample of extinction sigma over a
+ * segment of length dt has opacity 1 - exp(-sigma dt) exactly, rather than the paper's linear
+ * correction (eq. 8). Each sample scatters the light once: the light's colour, times the
+ * transmittance from the sample towards the light through the volume (a precomputed light
+ * grid), times the fraction of the light the opaque objects let through (the shadow map), times
+ * a Henyey-Greenstein phase; plus the ambient term. The march stops once every ray of the
+ * packet is nearly opaque, and the light and shadow lookups are skipped where every ray of the
+ * packet sees zero density.
+ *
+ * Light shafts (paper 002, §3.3): the shadow term of sample i is the mean of VOL_SHADOW_TAPS
+ * shadow-map tests spread along its segment [t_(i-1/2), t_(i+1/2)], alternately half a pixel's
+ * footprint either side of the ray across the view and the light (eq. 10), and of as many
+ * again where those disagree. The paper takes four such points, at the segment's ends, shared
+ * with the neighbours; a ray crossing the slanted sheets of light between occluders meets a
+ * shadow edge in many segments, and with only the ends tested the error of each crossing
+ * depends on where the edge falls between them, which draws bands that follow the sample
+ * spacing. Tests inside the segment are cheap (one load each) and shrink that error to
+ * 1 / (4 VOL_SHADOW_TAPS) of a segment where it matters, below what the eye sees, while the
+ * lateral offsets blend a shaft's edge across the pixel.
+ *
+ * Like the waves kernel, a work-item shades VOL_PACKET (16) adjacent pixels of a row in the lanes
+ * of a float16, so that PoCL's code is vector code filling AVX-512's registers; grid and
+ * shadow-map lookups are per-lane loads. Sixteen lanes rather than the objects kernel's eight
+ * took a third off the pass: the loads per pixel stay, the arithmetic and the spills of the
+ * values that live across the sample loop are shared by twice the pixels.
+ */
+#include "common.h"
+#include "volume.h"
+
+typedef float16 vf;
+typedef int16 vi;
+
+#define VOL_LANES                                                                                  \
+  ((vf)(0.5f, 1.5f, 2.5f, 3.5f, 4.5f, 5.5f, 6.5f, 7.5f, 8.5f, 9.5f, 10.5f, 11.5f, 12.5f, 13.5f,    \
+        14.5f, 15.5f))
+#define convert_vi convert_int16
+#define convert_vf convert_float16
+#define as_vf as_float16
+#define VOL_GATHER(p, i)                                                                           \
+  ((vf)(p[(i).s0], p[(i).s1], p[(i).s2], p[(i).s3], p[(i).s4], p[(i).s5], p[(i).s6], p[(i).s7],    \
+        p[(i).s8], p[(i).s9], p[(i).sa], p[(i).sb], p[(i).sc], p[(i).sd], p[(i).se], p[(i).sf]))
+
+/* The x-pairs (volume.h) of one voxel per lane, blended along x by 'fx': density into *d and
+ * light into *l, each a bilinear step short of the trilinear result. */
+static inline void vol_pair(__global const float4 *restrict g, vi b, vf fx, vf *d, vf *l) {
+  __global const float *f = (__global const float *)g;
+  vi q = b * 4;
+  *d = mix(VOL_GATHER(f, q), VOL_GATHER(f, q + 1), fx);
+  *l = mix(VOL_GATHER(f, q + 2), VOL_GATHER(f, q + 3), fx);
+}
+
+/*
+ * exp(-x) for finite x >= 0, to about 2e-7 relative, in vector code. The builtin exp became a
+ * call into the C library per lane, and a call inside the sample loop makes the compiler spill
+ * every live vector register around it. Here exp(-x) = 2^y with y = -x log2(e) split into the
+ * nearest integer n (by the add-and-subtract rounding trick, exact for |y| < 2^22) and f in
+ * [-1/2, 1/2], 2^f from Cephes' degree-6 polynomial (exp2f) and 2^n put into the exponent bits.
+ * x is capped at 87, where exp(-x) is below 2^-125 and a medium is opaque anyway.
+ */
+static inline vf vol_exp_neg(vf x) {
+  vf y = fmin(x, 87.0f) * -1.44269504088896341f;
+  vf n = (y + 12582912.0f) - 12582912.0f;
+  vf f = y - n;
+  vf p = fma(f, 1.535336188319500e-4f, 1.339887440266574e-3f);
+  p = fma(p, f, 9.618437357674640e-3f);
+  p = fma(p, f, 5.550332471162809e-2f);
+  p = fma(p, f, 2.402264791363012e-1f);
+  p = fma(p, f, 6.931472028550421e-1f);
+  p = fma(p, f, 1.0f);
+  return p * as_vf((convert_vi(n) + 127) << 23);
+}
+
+/*
+ * The trilinear interpolation of the density (*d) and light (*l) of grid 'g' (n[0] x n[1] x
+ * n[2]) at grid coordinates (x, y, z), in which voxel i's centre is at i; coordinates are
+ * clamped to the centres of the edge voxels, so the edge values extend to the box's faces.
+ */
+static inline void vol_trilinear(__global const float4 *restrict g, int nx, int ny, int nz, vf x,
+                                 vf y, vf z, vf *d, vf *l) {
+  /* Clamped first, the coordinates are non-negative, so conversion (which truncates) is floor:
+   * the builtin floor costs a dozen instructions here. fmax also turns a NaN into 0. */
+  x = fmin(fmax(x, 0.0f), (float)(nx - 1));
+  y = fmin(fmax(y, 0.0f), (float)(ny - 1));
+  z = fmin(fmax(z, 0.0f), (float)(nz - 1));
+  vi ix = convert_vi(x), iy = convert_vi(y), iz = convert_vi(z);
+  vi sy = select((vi)nx, (vi)0, iy >= ny - 1);
+  vi sz = select((vi)(nx * ny), (vi)0, iz >= nz - 1);
+  vf fx = x - convert_vf(ix), fy = y - convert_vf(iy), fz = z - convert_vf(iz);
+  vi b = ix + nx * (iy + ny * iz);
+  vf d00, d10, d01, d11, l00, l10, l01, l11;
+  vol_pair(g, b, fx, &d00, &l00);
+  vol_pair(g, b + sy, fx, &d10, &l10);
+  vol_pair(g, b + sz, fx, &d01, &l01);
+  vol_pair(g, b + sz + sy, fx, &d11, &l11);
+  *d = mix(mix(d00, d10, fy), mix(d01, d11, fy), fz);
+  *l = mix(mix(l00, l10, fy), mix(l01, l11, fy), fz);
+}
+
+/* 1 where the shadow-map texel containing (s, r) does not hold a surface nearer the light than
+ * 'z' (less the bias), else 0. */
+static inline vf vol_lit(__global const float *restrict smap, int pitch, const vfx_shadow_t *sh,
+                         vf s, vf r, vf z) {
+  float top = (float)(sh->size - 1);
+  /* Clamped to [0, top] first, truncation is floor (see vol_trilinear). */
+  vi i = convert_vi(fmin(fmax(s, 0.0f), top)), j = convert_vi(fmin(fmax(r, 0.0f), top));
+  vi at = j * pitch + i;
+  vf stored = VOL_GATHER(smap, at);
+  return select((vf)0.0f, (vf)1.0f, z - sh->bias <= stored);
+}
+
+/*
+ * The shadow test of the points at fraction (k + 0.5) / (2 VOL_SHADOW_TAPS) of the segments
+ * [t - dt / 2, t + dt / 2], half a pixel to one side of the ray or the other by (k / 2) % 2:
+ * 1 lit, 0 shadowed. On the ray the map position is linear in t: (s0 + t ds, r0 + t dr, z0 +
+ * t dz), s0, r0 and z0 those of the eye; (os, or) is the half-pixel offset per unit of t.
+ */
+static inline vf vol_tap(__global const float *restrict smap, int pitch, const vfx_shadow_t *sh,
+                         int k, vf t, vf dt, float s0, vf ds, float r0, vf dr, float z0, vf dz,
+                         vf os, vf or_) {
+  vf tk = t + dt * ((k + 0.5f) / (2 * VOL_SHADOW_TAPS) - 0.5f);
+  vf s = k & 2 ? ds - os : ds + os, r = k & 2 ? dr - or_ : dr + or_;
+  return vol_lit(smap, pitch, sh, s0 + tk * s, r0 + tk * r, z0 + tk * dz);
+}
+
+/*
+ * The shadow term of the segments [t - dt / 2, t + dt / 2] of the packet's rays (paper 002,
+ * §3.3, with more points than its four): the mean of VOL_SHADOW_TAPS tests spread along each
+ * segment, alternately either side of the ray; where they disagree for some ray, the segment
+ * holds a shadow edge and VOL_SHADOW_TAPS more tests between them refine it. Most segments are
+ * wholly lit or wholly shadowed and cost the first set only.
+ */
+static inline vf vol_shadow(__global const float *restrict smap, int pitch, const vfx_shadow_t *sh,
+                            vf t, vf dt, float s0, vf ds, float r0, vf dr, float z0, vf dz, vf os,
+                            vf or_) {
+  vf sum = 0.0f;
+  for (int k = 0; k < 2 * VOL_SHADOW_TAPS; k += 2)
+    sum += vol_tap(smap, pitch, sh, k, t, dt, s0, ds, r0, dr, z0, dz, os, or_);
+  if (all((sum == 0.0f) | (sum == (float)VOL_SHADOW_TAPS)))
+    return sum * (1.0f / VOL_SHADOW_TAPS);
+  for (int k = 1; k < 2 * VOL_SHADOW_TAPS; k += 2)
+    sum += vol_tap(smap, pitch, sh, k, t, dt, s0, ds, r0, dr, z0, dz, os, or_);
+  return sum * (0.5f / VOL_SHADOW_TAPS);
+}
+
+/*
+ * One packet of VOL_PACKET pixels per work-item at pixel (VOL_PACKET * global x, global y),
+ * over the padded buffers of the frame 'f' that the objects pass set up. 'vols' holds 'nvol'
+ * records (volume.h) nearest first, 'data' their grids; the result is composited over
+ * 'linear' (colour and alpha) in place.
+ *
+ * Register pressure decides the speed here more than arithmetic: every per-lane value that
+ * lives across the sample loop is a vector register, and once they spill each sample pays for
+ * it. So only the ray direction, the interval, the half-pixel offset, the phase and the
+ * accumulators cross the loop; grid and shadow-map coordinates are rebuilt from the direction
+ * at each sample, and whatever depends only on the eye stays scalar.
+ */
+__kernel void volumes(vfx_frame_t f, vfx_shadow_t sh, __global const float *restrict vols,
+                      int nvol, __global const float4 *restrict data,
+                      __global const float *restrict smap, int smap_pitch,
+                      __global const float *restrict depth, __global float *restrict linear) {
+  int x0 = VOL_PACKET * get_global_id(0), y = get_global_id(1);
+  int o = y * f.pitch + x0;
+
+  float ex = f.eye[0], ey = f.eye[1], ez = f.eye[2];
+  vf px = (float)x0 + VOL_LANES;
+  float py = y + 0.5f;
+  vf dx = f.base[0] + px * f.step_x[0] + py * f.step_y[0];
+  vf dy = f.base[1] + px * f.step_x[1] + py * f.step_y[1];
+  vf dz = f.base[2] + px * f.step_x[2] + py * f.step_y[2];
+  vf il = 1.0f / sqrt(dx * dx + dy * dy + dz * dz);
+  dx *= il, dy *= il, dz *= il;
+  vf tend = fmin(vload16(0, depth + o), f.far_);
+
+  float lx = f.light_dir[0], ly = f.light_dir[1], lz = f.light_dir[2];
+  /* The shadow map's coordinates of the eye (scalars), and the half-pixel offset across the
+   * view and the light (eq. 10) in texels per unit of t: half a pixel's footprint at unit
+   * distance. */
+  float pix = 0.5f * length((float3)(f.step_x[0], f.step_x[1], f.step_x[2]));
+  float ox = ex - sh.origin[0], oy = ey - sh.origin[1], oz = ez - sh.origin[2];
+  float su[3] = {sh.u[0] * sh.inv_texel, sh.u[1] * sh.inv_texel, sh.u[2] * sh.inv_texel};
+  float sv[3] = {sh.v[0] * sh.inv_texel, sh.v[1] * sh.inv_texel, sh.v[2] * sh.inv_texel};
+  float s0 = ox * su[0] + oy * su[1] + oz * su[2];
+  float r0 = ox * sv[0] + oy * sv[1] + oz * sv[2];
+  float z0 = ox * sh.w[0] + oy * sh.w[1] + oz * sh.w[2];
+  vf os, or_;
+  {
+    vf nx = dy * lz - dz * ly, ny = dz * lx - dx * lz, nz = dx * ly - dy * lx;
+    vf nl = sqrt(nx * nx + ny * ny + nz * nz);
+    /* A ray along the light has no preferred side: any direction across it will do. */
+    vi along = nl < 1e-6f;
+    nl = pix / fmax(nl, 1e-6f);
+    nx = select(nx * nl, (vf)(sh.u[0] * pix), along);
+    ny = select(ny * nl, (vf)(sh.u[1] * pix), along);
+    nz = select(nz * nl, (vf)(sh.u[2] * pix), along);
+    os = nx * su[0] + ny * su[1] + nz * su[2];
+    or_ = nx * sv[0] + ny * sv[1] + nz * sv[2];
+  }
+
+  vf tr = 1.0f, cr = 0.0f, cg = 0.0f, cb = 0.0f;
+  for (int v = 0; v < nvol; v++) {
+    __global const float *rec = vols + v * VOL_STRIDE;
+    /* The rays' interval inside the tight box, clipped to [near, opaque depth]. */
+    vf t0 = f.near_, t1 = tend;
+    {
+      vf e[3] = {(vf)ex, (vf)ey, (vf)ez}, d[3] = {dx, dy, dz};
+      for (int k = 0; k < 3; k++) {
+        vf inv = 1.0f / d[k];
+        vf ta = (rec[VOL_TMIN + k] - e[k]) * inv, tb = (rec[VOL_TMAX + k] - e[k]) * inv;
+        /* A ray parallel to the slab is inside it everywhere or nowhere. */
+        vi par = d[k] == 0.0f;
+        vi in = (e[k] >= rec[VOL_TMIN + k]) & (e[k] <= rec[VOL_TMAX + k]);
+        ta = select(ta, select((vf)INFINITY, (vf)-INFINITY, in), par);
+        tb = select(tb, select((vf)-INFINITY, (vf)INFINITY, in), par);
+        t0 = fmax(t0, fmin(ta, tb));
+        t1 = fmin(t1, fmax(ta, tb));
+      }
+    }
+    vi act = (t0 < t1) & (tr > VOL_T_MIN);
+    if (!any(act))
+      continue;
+    int n = as_int(rec[VOL_SAMPLES]);
+    vf dt = select((vf)0.0f, (t1 - t0) / (float)n, act);
+    t0 = select((vf)0.0f, t0, act);
+
+    int gx = as_int(rec[VOL_DIMS]), gy = as_int(rec[VOL_DIMS + 1]), gz = as_int(rec[VOL_DIMS + 2]);
+    __global const float4 *grid = data + as_int(rec[VOL_OFF]);
+    /* Grid coordinates of the eye, in which voxel i's centre is at i. */
+    float ix = rec[VOL_INV], iy = rec[VOL_INV + 1], iz = rec[VOL_INV + 2];
+    float g0x = (ex - rec[VOL_BMIN]) * ix - 0.5f, g0y = (ey - rec[VOL_BMIN + 1]) * iy - 0.5f,
+          g0z = (ez - rec[VOL_BMIN + 2]) * iz - 0.5f;
+
+    float sigma = rec[VOL_SIGMA], g = rec[VOL_PHASE_G];
+    /* Henyey-Greenstein, scaled by 4 pi so that an isotropic medium (g = 0) has phase 1. */
+    vf hg = 1.0f + g * g - 2.0f * g * (dx * lx + dy * ly + dz * lz);
+    vf phase = (1.0f - g * g) / (hg * sqrt(hg));
+    float lr = f.light_rgb[0] * rec[VOL_ALBEDO], lg = f.light_rgb[1] * rec[VOL_ALBEDO + 1],
+          lb = f.light_rgb[2] * rec[VOL_ALBEDO + 2];
+    float ar = f.ambient * rec[VOL_ALBEDO], ag = f.ambient * rec[VOL_ALBEDO + 1],
+          ab = f.ambient * rec[VOL_ALBEDO + 2];
+
+    for (int i = 0; i < n; i++) {
+      vf t = t0 + ((float)i + 0.5f) * dt;
+      vf sig, tl;
+      vol_trilinear(grid, gx, gy, gz, g0x + t * (dx * ix), g0y + t * (dy * iy), g0z + t * (dz * iz),
+                    &sig, &tl);
+      sig = select((vf)0.0f, sigma * sig, act);
+      if (!any(sig > 0.0f))
+        continue;
+      vf direct = tl * phase;
+      if (sh.enabled) {
+        vf ds = dx * su[0] + dy * su[1] + dz * su[2];
+        vf dr = dx * sv[0] + dy * sv[1] + dz * sv[2];
+        vf dw = dx * sh.w[0] + dy * sh.w[1] + dz * sh.w[2];
+        direct *= vol_shadow(smap, smap_pitch, &sh, t, dt, s0, ds, r0, dr, z0, dw, os, or_);
+      }
+      vf w = tr * (1.0f - vol_exp_neg(sig * dt));
+      cr += w * fma(lr, direct, ar);
+      cg += w * fma(lg, direct, ag);
+      cb += w * fma(lb, direct, ab);
+      tr -= w;
+      if (all((tr <= VOL_T_MIN) | ~act))
+        break;
+    }
+  }
+
+  /* Over what the earlier passes drew (eq. 9): C = T * behind + the volume's light. */
+  float16 p0 = vload16(0, linear + 4 * o), p1 = vload16(1, linear + 4 * o);
+  float16 p2 = vload16(2, linear + 4 * o), p3 = vload16(3, linear + 4 * o);
+  vf br = (vf)(p0.s048c, p1.s048c, p2.s048c, p3.s048c);
+  vf bg = (vf)(p0.s159d, p1.s159d, p2.s159d, p3.s159d);
+  vf bb = (vf)(p0.s26ae, p1.s26ae, p2.s26ae, p3.s26ae);
+  vf ba = (vf)(p0.s37bf, p1.s37bf, p2.s37bf, p3.s37bf);
+  vf r = fma(tr, br, cr), gg = fma(tr, bg, cg), b = fma(tr, bb, cb);
+  vf a = fma(tr, ba, 1.0f - tr);
+  vstore16((float16)(r.s0, gg.s0, b.s0, a.s0, r.s1, gg.s1, b.s1, a.s1, r.s2, gg.s2, b.s2, a.s2,
+                     r.s3, gg.s3, b.s3, a.s3),
+           0, linear + 4 * o);
+  vstore16((float16)(r.s4, gg.s4, b.s4, a.s4, r.s5, gg.s5, b.s5, a.s5, r.s6, gg.s6, b.s6, a.s6,
+                     r.s7, gg.s7, b.s7, a.s7),
+           1, linear + 4 * o);
+  vstore16((float16)(r.s8, gg.s8, b.s8, a.s8, r.s9, gg.s9, b.s9, a.s9, r.sa, gg.sa, b.sa, a.sa,
+                     r.sb, gg.sb, b.sb, a.sb),
+           2, linear + 4 * o);
+  vstore16((float16)(r.sc, gg.sc, b.sc, a.sc, r.sd, gg.sd, b.sd, a.sd, r.se, gg.se, b.se, a.se,
+                     r.sf, gg.sf, b.sf, a.sf),
+           3, linear + 4 * o);
+}
+
+/* ---- The shadow map ---------------------------------------------------------------------- */
+
+/*
+ * Nearest mesh triangle along lines from per-lane origins o in the shared direction d, at any
+ * distance below *best (lines are whole: negative distances count); updates *best.
+ */
+static void vol_mesh_nearest(__global const float *restrict nodes,
+                             __global const float *restrict tris, vf ox, vf oy, vf oz, float dx,
+                             float dy, float dz, vf *best) {
+  float ix = 1.0f / dx, iy = 1.0f / dy, iz = 1.0f / dz;
+  int stack[BVH_MAX_DEPTH];
+  int sp = 0, node = 0;
+  for (;;) {
+    __global const float *nd = nodes + node * NODE_STRIDE;
+    vf t0x = (nd[0] - ox) * ix, t1x = (nd[3] - ox) * ix;
+    vf t0y = (nd[1] - oy) * iy, t1y = (nd[4] - oy) * iy;
+    vf t0z = (nd[2] - oz) * iz, t1z = (nd[5] - oz) * iz;
+    /* fmin/fmax drop the NaN of 0 * inf, which leaves that axis unbounded: safe. */
+    vf lo = fmax(fmax(fmin(t0x, t1x), fmin(t0y, t1y)), fmin(t0z, t1z));
+    vf hi = fmin(fmin(fmax(t0x, t1x), fmax(t0y, t1y)), fmin(fmax(t0z, t1z), *best));
+    if (any(lo <= hi)) {
+      int count = as_int(nd[NODE_COUNT]), first = as_int(nd[NODE_FIRST]);
+      if (count == 0) {
+        stack[sp++] = first;
+        node++;
+        continue;
+      }
+      for (int i = first; i < first + count; i++) {
+        __global const float *tr = tris + i * TRI_STRIDE;
+        float e1x = tr[3], e1y = tr[4], e1z = tr[5];
+        float e2x = tr[6], e2y = tr[7], e2z = tr[8];
+        float px = dy * e2z - dz * e2y, py = dz * e2x - dx * e2z, pz = dx * e2y - dy * e2x;
+        float inv = 1.0f / (e1x * px + e1y * py + e1z * pz);
+        vf sx = ox - tr[0], sy = oy - tr[1], sz = oz - tr[2];
+        vf u = (sx * px + sy * py + sz * pz) * inv;
+        vf qx = sy * e1z - sz * e1y, qy = sz * e1x - sx * e1z, qz = sx * e1y - sy * e1x;
+        vf v = (dx * qx + dy * qy + dz * qz) * inv;
+        vf t = (e2x * qx + e2y * qy + e2z * qz) * inv;
+        vi hit = (u >= 0.0f) & (v >= 0.0f) & (u + v <= 1.0f) & (t < *best);
+        *best = select(*best, t, hit);
+      }
+    }
+    if (sp == 0)
+      return;
+    node = stack[--sp];
+  }
+}
+
+/*
+ * The shadow map (volume.h): SHADOW_PACKET texels of a row per work-item at texel
+ * (SHADOW_PACKET * global x, global y), 'pitch' texels per row. Each texel's line, in the
+ * direction the light travels, is tested against the objects the objects pass uploaded
+ * (counts and offsets in 'f') and the nearest surface along the whole line is kept.
+ */
+__kernel void shadow_map(vfx_frame_t f, vfx_shadow_t sh, __global const float *restrict objs,
+                         __global const float *restrict nodes, __global const float *restrict tris,
+                         __global float *restrict smap, int pitch) {
+  int x0 = SHADOW_PACKET * get_global_id(0), y = get_global_id(1);
+  float texel = 1.0f / sh.inv_texel;
+  vf s = ((float)x0 + VOL_LANES) * texel, r = (y + 0.5f) * texel;
+  vf ox = sh.origin[0] + s * sh.u[0] + r * sh.v[0];
+  vf oy = sh.origin[1] + s * sh.u[1] + r * sh.v[1];
+  vf oz = sh.origin[2] + s * sh.u[2] + r * sh.v[2];
+  float dx = sh.w[0], dy = sh.w[1], dz = sh.w[2];
+  vf best = INFINITY;
+
+  for (int i = 0; i < f.nsph; i++) {
+    __global const float *sp = objs + i * SPH_STRIDE;
+    __global const float *m = sp + SPH_MINV;
+    vf wx = ox - sp[0], wy = oy - sp[1], wz = oz - sp[2];
+    /* Lines farther from the centre than the bounding radius miss. */
+    vf cx = wy * dz - wz * dy, cy = wz * dx - wx * dz, cz = wx * dy - wy * dx;
+    float rad = sp[SPH_RADIUS];
+    if (!any(cx * cx + cy * cy + cz * cz <= rad * rad))
+      continue;
+    vf px = m[0] * wx + m[1] * wy + m[2] * wz;
+    vf py = m[3] * wx + m[4] * wy + m[5] * wz;
+    vf pz = m[6] * wx + m[7] * wy + m[8] * wz;
+    float qx = m[0] * dx + m[1] * dy + m[2] * dz;
+    float qy = m[3] * dx + m[4] * dy + m[5] * dz;
+    float qz = m[6] * dx + m[7] * dy + m[8] * dz;
+    float a = qx * qx + qy * qy + qz * qz;
+    vf b = qx * px + qy * py + qz * pz;
+    vf kx = qy * pz - qz * py, ky = qz * px - qx * pz, kz = qx * py - qy * px;
+    vf disc = 0.25f * a - (kx * kx + ky * ky + kz * kz);
+    vf t = (-b - sqrt(fmax(disc, 0.0f))) / a;
+    best = select(best, t, (disc >= 0.0f) & (t < best));
+  }
+  for (int i = 0; i < f.nconv; i++) {
+    __global const float *c = objs + f.conv_off + i * CONV_STRIDE;
+    vf tin = -INFINITY, tout = INFINITY;
+    vi miss = 0;
+    int np = as_int(c[CONV_NPLANES]);
+    for (int k = 0; k < np; k++) {
+      float pnx = c[4 * k], pny = c[4 * k + 1], pnz = c[4 * k + 2];
+      float den = pnx * dx + pny * dy + pnz * dz;
+      vf num = c[4 * k + 3] - (pnx * ox + pny * oy + pnz * oz);
+      vf t = num / den;
+      if (den < 0.0f)
+        tin = fmax(tin, t);
+      else if (den > 0.0f)
+        tout = fmin(tout, t);
+      else
+        miss |= num < 0.0f;
+    }
+    best = select(best, tin, ~miss & (tin <= tout) & (tin < best));
+  }
+  if (f.ntri > 0)
+    vol_mesh_nearest(nodes, tris, ox, oy, oz, dx, dy, dz, &best);
+  vstore16(best, 0, smap + y * pitch + x0);
+}

@@ -1,0 +1,728 @@
+/*
+ * The volumes pass (SPEC §5.3): the scene's volumes[] (layer "volumes") and the cloud (layer
+ * "cloud") ray-marched over the objects, with the opaque objects' shadows from a shadow map
+ * (light shafts). The kernels are in kernels/volume.cl; this file prepares what they read:
+ *
+ * - per volume, its density grid (a density_grid_t as given, or the procedural noise baked
+ *   into a grid on the host), a light grid holding the transmittance from each voxel towards
+ *   the light through the volume (one sweep across the grid, slice by slice from the light's
+ *   side), both interleaved in x-pairs as the kernel reads them (volume.h), and the tight box
+ *   where the density can be non-zero. These are cached per volume and
+ *   rebuilt only when the volume, its grid or the light changes, so a still scene uploads
+ *   nothing;
+ * - the shadow map of the objects, orthographic along the light and fitted to the volumes'
+ *   tight boxes, rendered by the shadow_map kernel from the object records and BVH the objects
+ *   pass uploaded, and kept while objects, light and fit stay the same.
+ *
+ * Volumes are composited nearest first (by the distance from the eye to the box centre);
+ * overlapping volumes are sampled one after the other, not merged.
+ */
+#include <math.h>
+
+#include "render_internal.h"
+#include "../kernels/volume.h"
+
+#define NOISE_MAX_SIDE 96 /* Largest side of a baked noise grid. */
+#define NOISE_PER_SCALE 8 /* Baked voxels per noise_scale. */
+#define NOISE_OCTAVES 4   /* fBm octaves of the value noise. */
+#define NOISE_FADE 0.15   /* Noise volumes fade to zero over this fraction of the box. */
+
+/* One volume's prepared data, keyed by everything it was made from. */
+typedef struct vol_entry {
+  int valid;
+  /* The key. */
+  volume_source_t source;
+  density_grid_t *grid; /* A counted reference (VOLUME_GRID). */
+  uint32_t seed;
+  float noise_scale, sigma;
+  float min[3], max[3], light[3];
+  /* The data. */
+  float *baked; /* VOLUME_NOISE: the baked density (owned); NULL for grids. */
+  uint32_t dims[3];
+  float *lgrid;           /* Light transmittance while building (owned), dims voxels. */
+  float *packed;          /* The float4 x-pairs the kernel reads (volume.h), dims voxels (owned). */
+  float tmin[3], tmax[3]; /* Tight box. */
+  int empty;              /* No voxel is above zero. */
+  size_t off;             /* Offset in the device buffer, float4s. */
+} vol_entry_t;
+
+/* What the cached shadow map was rendered from. */
+typedef struct shadow_key {
+  vfx_shadow_t sh;
+  int nsph, nconv, ntri;
+  float *objs; /* The sphere and convex records. */
+  size_t nobjs, cap_objs;
+  mesh_key_t *bvh;
+  int nbvh;
+} shadow_key_t;
+
+struct vol_state {
+  cl_kernel kvol, kshadow;
+  cl_mem recs, data, smap;
+  size_t cap_recs, cap_data, cap_smap;
+  vol_entry_t *ents;
+  int nents;
+  size_t data_floats; /* Floats uploaded to 'data'. */
+  float *host_recs;
+  size_t host_recs_cap;
+  shadow_key_t skey;
+  int smap_valid;
+  int smap_pitch;
+};
+
+/*
+ * A counted reference to a grid, and its release: density_grid_ref and density_grid_unref
+ * belong to the scene library, which links against this one, so the renderer does the same two
+ * atomic steps itself (a grid is freed by whoever drops its last reference).
+ */
+static density_grid_t *grid_hold(density_grid_t *g) {
+  if (g)
+    atomic_fetch_add_explicit(&g->refs, 1, memory_order_relaxed);
+  return g;
+}
+
+static void grid_drop(density_grid_t *g) {
+  if (!g || atomic_fetch_sub_explicit(&g->refs, 1, memory_order_acq_rel) != 1)
+    return;
+  free(g->data);
+  free(g);
+}
+
+/* ---- Noise --------------------------------------------------------------------------------- */
+
+static uint32_t hash3(int32_t x, int32_t y, int32_t z, uint32_t seed) {
+  uint32_t h = seed * 0x9E3779B1u ^ (uint32_t)x * 0x85EBCA77u ^ (uint32_t)y * 0xC2B2AE3Du ^
+               (uint32_t)z * 0x27D4EB2Fu;
+  h ^= h >> 15;
+  h *= 0x2C1B3C6Du;
+  h ^= h >> 12;
+  h *= 0x297A2D39u;
+  h ^= h >> 15;
+  return h;
+}
+
+static double fade(double t) {
+  return t * t * t * (t * (t * 6 - 15) + 10);
+}
+
+/* Value noise in [0, 1): hashed lattice values blended with the quintic fade. */
+static double value_noise(double x, double y, double z, uint32_t seed) {
+  double fx = floor(x), fy = floor(y), fz = floor(z);
+  int32_t ix = (int32_t)fx, iy = (int32_t)fy, iz = (int32_t)fz;
+  double u = fade(x - fx), v = fade(y - fy), w = fade(z - fz);
+  double c[8];
+  for (int k = 0; k < 8; k++)
+    c[k] = hash3(ix + (k & 1), iy + ((k >> 1) & 1), iz + (k >> 2), seed) * (1.0 / 4294967296.0);
+  double x00 = c[0] + u * (c[1] - c[0]), x10 = c[2] + u * (c[3] - c[2]);
+  double x01 = c[4] + u * (c[5] - c[4]), x11 = c[6] + u * (c[7] - c[6]);
+  double y0 = x00 + v * (x10 - x00), y1 = x01 + v * (x11 - x01);
+  return y0 + w * (y1 - y0);
+}
+
+/*
+ * The density of a noise volume at world point 'p': fBm of NOISE_OCTAVES octaves of value
+ * noise with feature size 'scale' (halving each octave, weights halving), in [0, 1], times a
+ * fade to zero over the outer NOISE_FADE of the box on each axis so the box's faces do not show.
+ */
+static double noise_density(const rvolume_t *v, const double p[3]) {
+  double sum = 0, amp = 1, norm = 0, freq = 1.0 / v->noise_scale, edge = 1;
+  for (int o = 0; o < NOISE_OCTAVES; o++) {
+    sum += amp * value_noise(p[0] * freq, p[1] * freq, p[2] * freq, v->seed + 1013u * o);
+    norm += amp;
+    amp *= 0.5, freq *= 2;
+  }
+  for (int k = 0; k < 3; k++) {
+    double u = (p[k] - v->min[k]) / ((double)v->max[k] - v->min[k]);
+    double d = fmin(u, 1 - u) / NOISE_FADE;
+    d = d < 0 ? 0 : d > 1 ? 1 : d;
+    edge *= d * d * (3 - 2 * d);
+  }
+  return sum / norm * edge;
+}
+
+/* Bakes the noise of 'v' into e->baked. Returns 0, or -1 when out of memory. */
+static int bake_noise(const rvolume_t *v, vol_entry_t *e) {
+  size_t n = 1;
+  for (int k = 0; k < 3; k++) {
+    double cells = ceil(((double)v->max[k] - v->min[k]) / v->noise_scale * NOISE_PER_SCALE);
+    e->dims[k] = (uint32_t)(cells < 4 ? 4 : cells > NOISE_MAX_SIDE ? NOISE_MAX_SIDE : cells);
+    n *= e->dims[k];
+  }
+  e->baked = malloc(n * sizeof(float));
+  if (e->baked == NULL)
+    return -1;
+  float *out = e->baked;
+  for (uint32_t z = 0; z < e->dims[2]; z++)
+    for (uint32_t y = 0; y < e->dims[1]; y++)
+      for (uint32_t x = 0; x < e->dims[0]; x++) {
+        uint32_t i[3] = {x, y, z};
+        double p[3];
+        for (int k = 0; k < 3; k++)
+          p[k] = v->min[k] + (i[k] + 0.5) * ((double)v->max[k] - v->min[k]) / e->dims[k];
+        *out++ = (float)noise_density(v, p);
+      }
+  return 0;
+}
+
+/* ---- Light grid ---------------------------------------------------------------------------- */
+
+/*
+ * Fills e->lgrid with the transmittance from each voxel centre towards the light
+ * (direction 'l', unit) through the volume, for extinction sigma * density. One sweep: along
+ * the axis on which the light moves fastest in voxels, slice by slice from the light's side,
+ * a voxel's transmittance is that of the point one slice up the light ray (bilinear in the
+ * slice before) times exp(-optical depth of the step between them), the density integrated by
+ * the trapezoid rule. A point that falls beside the grid sees the light unobstructed.
+ */
+static int light_grid(vol_entry_t *e, const float *dens, float sigma, const float l[3]) {
+  uint32_t *n = e->dims;
+  size_t nl = (size_t)n[0] * n[1] * n[2];
+  float *sg = malloc(nl * sizeof(float));
+  free(e->lgrid);
+  e->lgrid = malloc(nl * sizeof(float));
+  if (sg == NULL || e->lgrid == NULL) {
+    free(sg);
+    return -1;
+  }
+  /* Extinction at the voxel centres. */
+  double cell[3], lv[3];
+  for (int k = 0; k < 3; k++) {
+    cell[k] = ((double)e->max[k] - e->min[k]) / n[k];
+    lv[k] = l[k] / cell[k];
+  }
+  for (size_t i = 0; i < nl; i++)
+    sg[i] = sigma * dens[i];
+  int a = 0;
+  for (int k = 1; k < 3; k++)
+    if (fabs(lv[k]) > fabs(lv[a]))
+      a = k;
+  int b = (a + 1) % 3, c = (a + 2) % 3;
+  if (!(fabs(lv[a]) > 0)) {
+    for (size_t i = 0; i < nl; i++)
+      e->lgrid[i] = 1;
+    free(sg);
+    return 0;
+  }
+  double step = 1 / fabs(lv[a]); /* World length of one slice's step along the light. */
+  double db = lv[b] * step, dc = lv[c] * step;
+  int dir = lv[a] > 0 ? 1 : -1; /* The light lies towards increasing a when 1. */
+  size_t stride[3] = {1, n[0], (size_t)n[0] * n[1]};
+  int first = dir > 0 ? (int)n[a] - 1 : 0;
+  for (int s = first; s >= 0 && s < (int)n[a]; s -= dir) {
+    for (uint32_t j = 0; j < n[b]; j++)
+      for (uint32_t k = 0; k < n[c]; k++) {
+        size_t at = s * stride[a] + j * stride[b] + k * stride[c];
+        double here = sg[at], t_up = 1, s_up = here;
+        double pb = j + db, pc = k + dc;
+        int up = s + dir;
+        if (up >= 0 && up < (int)n[a] && pb >= -0.5 && pb <= n[b] - 0.5 && pc >= -0.5 &&
+            pc <= n[c] - 0.5) {
+          double qb = pb < 0 ? 0 : pb > n[b] - 1.0 ? n[b] - 1.0 : pb;
+          double qc = pc < 0 ? 0 : pc > n[c] - 1.0 ? n[c] - 1.0 : pc;
+          int b0 = (int)qb, c0 = (int)qc;
+          int b1 = b0 + 1 < (int)n[b] ? b0 + 1 : b0, c1 = c0 + 1 < (int)n[c] ? c0 + 1 : c0;
+          double fb = qb - b0, fc = qc - c0;
+          size_t base = up * stride[a];
+          size_t i00 = base + b0 * stride[b] + c0 * stride[c];
+          size_t i10 = base + b1 * stride[b] + c0 * stride[c];
+          size_t i01 = base + b0 * stride[b] + c1 * stride[c];
+          size_t i11 = base + b1 * stride[b] + c1 * stride[c];
+          double w00 = (1 - fb) * (1 - fc), w10 = fb * (1 - fc), w01 = (1 - fb) * fc, w11 = fb * fc;
+          t_up =
+              w00 * e->lgrid[i00] + w10 * e->lgrid[i10] + w01 * e->lgrid[i01] + w11 * e->lgrid[i11];
+          s_up = w00 * sg[i00] + w10 * sg[i10] + w01 * sg[i01] + w11 * sg[i11];
+          e->lgrid[at] = (float)t_up * expf((float)(-0.5 * step * (here + s_up)));
+        } else {
+          /* The ray leaves the box within about half a step. */
+          e->lgrid[at] = expf((float)(-0.5 * step * here));
+        }
+      }
+  }
+  free(sg);
+  return 0;
+}
+
+/* The part of the box where the interpolated density can be non-zero; 1 when there is none. */
+static int tight_box(vol_entry_t *e, const float *dens) {
+  int lo[3] = {INT32_MAX, INT32_MAX, INT32_MAX}, hi[3] = {-1, -1, -1};
+  const float *p = dens;
+  for (uint32_t z = 0; z < e->dims[2]; z++)
+    for (uint32_t y = 0; y < e->dims[1]; y++) {
+      int xl = -1, xh = -1;
+      for (uint32_t x = 0; x < e->dims[0]; x++, p++)
+        if (*p > 0) {
+          if (xl < 0)
+            xl = (int)x;
+          xh = (int)x;
+        }
+      if (xl < 0)
+        continue;
+      int at[3] = {xl, (int)y, (int)z}, ah[3] = {xh, (int)y, (int)z};
+      for (int k = 0; k < 3; k++) {
+        lo[k] = at[k] < lo[k] ? at[k] : lo[k];
+        hi[k] = ah[k] > hi[k] ? ah[k] : hi[k];
+      }
+    }
+  if (hi[0] < 0)
+    return 1;
+  for (int k = 0; k < 3; k++) {
+    double cell = ((double)e->max[k] - e->min[k]) / e->dims[k];
+    double a = e->min[k] + (lo[k] - 0.5) * cell, b = e->min[k] + (hi[k] + 1.5) * cell;
+    e->tmin[k] = (float)(a < e->min[k] ? e->min[k] : a);
+    e->tmax[k] = (float)(b > e->max[k] ? e->max[k] : b);
+  }
+  return 0;
+}
+
+/* Interleaves density and light into e->packed as the kernel reads them (volume.h). */
+static int pack(vol_entry_t *e, const float *dens) {
+  size_t n = (size_t)e->dims[0] * e->dims[1] * e->dims[2];
+  e->packed = malloc(4 * n * sizeof(float));
+  if (e->packed == NULL)
+    return -1;
+  float *q = e->packed;
+  uint32_t nx = e->dims[0];
+  for (size_t row = 0; row < n; row += nx)
+    for (uint32_t x = 0; x < nx; x++, q += 4) {
+      size_t i = row + x, j = x + 1 < nx ? i + 1 : i;
+      q[0] = dens[i], q[1] = dens[j], q[2] = e->lgrid[i], q[3] = e->lgrid[j];
+    }
+  return 0;
+}
+
+static void entry_clear(vol_entry_t *e) {
+  grid_drop(e->grid);
+  free(e->baked);
+  free(e->lgrid);
+  free(e->packed);
+  memset(e, 0, sizeof *e);
+}
+
+static int entry_matches(const vol_entry_t *e, const rvolume_t *v, float sigma, const float l[3]) {
+  if (!e->valid || e->source != v->source || e->sigma != sigma)
+    return 0;
+  if (v->source == VOLUME_GRID ? e->grid != v->grid
+                               : e->seed != v->seed || e->noise_scale != v->noise_scale)
+    return 0;
+  return memcmp(e->min, v->min, sizeof e->min) == 0 && memcmp(e->max, v->max, sizeof e->max) == 0 &&
+         memcmp(e->light, l, sizeof e->light) == 0;
+}
+
+/* (Re)builds entry 'e' for volume 'v'. Returns 0, or -1 when out of memory. */
+static int entry_build(vol_entry_t *e, const rvolume_t *v, float sigma, const float l[3]) {
+  entry_clear(e);
+  e->source = v->source;
+  e->seed = v->seed;
+  e->noise_scale = v->noise_scale;
+  e->sigma = sigma;
+  memcpy(e->min, v->min, sizeof e->min);
+  memcpy(e->max, v->max, sizeof e->max);
+  memcpy(e->light, l, sizeof e->light);
+  const float *dens;
+  if (v->source == VOLUME_GRID) {
+    e->grid = grid_hold(v->grid);
+    memcpy(e->dims, v->grid->dims, sizeof e->dims);
+    dens = v->grid->data;
+  } else {
+    if (bake_noise(v, e) != 0)
+      return -1;
+    dens = e->baked;
+  }
+  e->empty = tight_box(e, dens);
+  if (!e->empty) {
+    if (light_grid(e, dens, sigma, l) != 0 || pack(e, dens) != 0)
+      return -1;
+    free(e->lgrid);
+    free(e->baked);
+    e->lgrid = e->baked = NULL;
+  }
+  e->valid = 1;
+  return 0;
+}
+
+/* A volume the pass can draw: finite positive box, grid present, samples >= 1. */
+static int usable(const rvolume_t *v) {
+  for (int k = 0; k < 3; k++)
+    if (!(v->max[k] > v->min[k]) || !isfinite(v->min[k]) || !isfinite(v->max[k]))
+      return 0;
+  if (!(v->density > 0) || !isfinite(v->density) || v->samples < 1)
+    return 0;
+  if (v->source == VOLUME_GRID)
+    return v->grid != NULL && v->grid->data != NULL && v->grid->dims[0] > 0 &&
+           v->grid->dims[1] > 0 && v->grid->dims[2] > 0;
+  return v->noise_scale > 0 && isfinite(v->noise_scale);
+}
+
+/* ---- Shadow map ---------------------------------------------------------------------------- */
+
+/*
+ * Fits the shadow map's plane to the tight boxes of the 'n' entries at 'ents' (those not
+ * empty), seen along the light 'l' (unit, towards the light): a square of 'size' texels with a
+ * margin of two texels.
+ */
+static void fit_shadow(vfx_shadow_t *sh, const vol_entry_t *const *ents, int n, const float l[3],
+                       int size) {
+  double w[3] = {-l[0], -l[1], -l[2]}, a[3] = {0, 0, 0}, u[3], v[3];
+  int least = 0;
+  for (int k = 1; k < 3; k++)
+    if (fabs(w[k]) < fabs(w[least]))
+      least = k;
+  a[least] = 1;
+  u[0] = a[1] * w[2] - a[2] * w[1], u[1] = a[2] * w[0] - a[0] * w[2],
+  u[2] = a[0] * w[1] - a[1] * w[0];
+  double ul = sqrt(u[0] * u[0] + u[1] * u[1] + u[2] * u[2]);
+  for (int k = 0; k < 3; k++)
+    u[k] /= ul;
+  v[0] = w[1] * u[2] - w[2] * u[1], v[1] = w[2] * u[0] - w[0] * u[2],
+  v[2] = w[0] * u[1] - w[1] * u[0];
+  double lo[3] = {INFINITY, INFINITY, INFINITY}, hi[3] = {-INFINITY, -INFINITY, -INFINITY};
+  for (int i = 0; i < n; i++)
+    for (int c = 0; c < 8; c++) {
+      double p[3] = {c & 1 ? ents[i]->tmax[0] : ents[i]->tmin[0],
+                     c & 2 ? ents[i]->tmax[1] : ents[i]->tmin[1],
+                     c & 4 ? ents[i]->tmax[2] : ents[i]->tmin[2]};
+      double q[3] = {p[0] * u[0] + p[1] * u[1] + p[2] * u[2],
+                     p[0] * v[0] + p[1] * v[1] + p[2] * v[2],
+                     p[0] * w[0] + p[1] * w[1] + p[2] * w[2]};
+      for (int k = 0; k < 3; k++)
+        lo[k] = fmin(lo[k], q[k]), hi[k] = fmax(hi[k], q[k]);
+    }
+  double side = fmax(hi[0] - lo[0], hi[1] - lo[1]);
+  double texel = side / (size - 4);
+  if (!(texel > 0))
+    texel = 1e-6;
+  double ou = lo[0] - 2 * texel, ov = lo[1] - 2 * texel;
+  for (int k = 0; k < 3; k++) {
+    sh->origin[k] = (float)(ou * u[k] + ov * v[k] + lo[2] * w[k]);
+    sh->u[k] = (float)u[k], sh->v[k] = (float)v[k], sh->w[k] = (float)w[k];
+  }
+  sh->inv_texel = (float)(1 / texel);
+  /* A texel's depth stands for the whole texel, so on a surface sloping away from the light the
+   * true depth under a sample differs from it by up to a texel or two: samples just in front
+   * of such a surface must not fall into its shadow (acne). Leaking light two texels behind an
+   * occluder's face cannot be seen in a medium. */
+  sh->bias = (float)(2 * texel + 1e-5 * (1 + fabs(lo[2]) + fabs(hi[2])));
+  sh->size = size;
+  sh->enabled = 1;
+}
+
+/* Whether the cached shadow map was made from the same objects and fit; otherwise records the
+ * new key. Returns 1 on a match, 0 on a miss, -1 when out of memory. */
+static int shadow_cached(renderer_t *r, struct vol_state *vs, const vfx_shadow_t *sh) {
+  shadow_key_t *k = &vs->skey;
+  const vfx_frame_t *f = &r->frame;
+  size_t nobjs = (size_t)f->nsph * SPH_STRIDE + (size_t)f->nconv * CONV_STRIDE;
+  int same = vs->smap_valid && memcmp(&k->sh, sh, sizeof *sh) == 0 && k->nsph == f->nsph &&
+             k->nconv == f->nconv && k->ntri == f->ntri && k->nobjs == nobjs &&
+             (nobjs == 0 || memcmp(k->objs, r->host_objs, nobjs * sizeof(float)) == 0) &&
+             k->nbvh == r->bvh_nkeys &&
+             (r->bvh_nkeys == 0 || memcmp(k->bvh, r->bvh_keys, r->bvh_nkeys * sizeof *k->bvh) == 0);
+  if (same)
+    return 1;
+  vs->smap_valid = 0;
+  if (grow_staging((void **)&k->objs, &k->cap_objs, nobjs ? nobjs : 1, sizeof(float)) != 0)
+    return -1;
+  mesh_key_t *bvh = realloc(k->bvh, (r->bvh_nkeys ? r->bvh_nkeys : 1) * sizeof *bvh);
+  if (bvh == NULL)
+    return -1;
+  k->bvh = bvh;
+  if (nobjs)
+    memcpy(k->objs, r->host_objs, nobjs * sizeof(float));
+  if (r->bvh_nkeys)
+    memcpy(k->bvh, r->bvh_keys, r->bvh_nkeys * sizeof *bvh);
+  k->sh = *sh, k->nsph = f->nsph, k->nconv = f->nconv, k->ntri = f->ntri, k->nobjs = nobjs;
+  k->nbvh = r->bvh_nkeys;
+  return 0;
+}
+
+/* Renders the shadow map for 'sh' into vs->smap unless the cached one is the same. */
+static int render_shadow(renderer_t *r, struct vol_state *vs, const vfx_shadow_t *sh, char *err,
+                         size_t errlen) {
+  int c = shadow_cached(r, vs, sh);
+  if (c < 0) {
+    set_err(err, errlen, "[render] out of memory for the shadow map's key");
+    return PROTO_E_INTERNAL;
+  }
+  if (c == 1)
+    return 0;
+  size_t lx = r->objects_local[0], ly = r->objects_local[1];
+  size_t pitch = round_up((size_t)sh->size, SHADOW_PACKET * lx), rows = round_up(sh->size, ly);
+  if (render_ensure_buffer(r, &vs->smap, &vs->cap_smap, pitch * rows, sizeof(float),
+                           CL_MEM_READ_WRITE, 0, err, errlen))
+    return PROTO_E_DEVICE;
+  vs->smap_pitch = (int)pitch;
+  cl_int ip = (cl_int)pitch;
+  cl_kernel k = vs->kshadow;
+  cl_int cr = clSetKernelArg(k, 0, sizeof r->frame, &r->frame);
+  if (cr == CL_SUCCESS)
+    cr = clSetKernelArg(k, 1, sizeof *sh, sh);
+  if (cr == CL_SUCCESS)
+    cr = clSetKernelArg(k, 2, sizeof(cl_mem), &r->objs);
+  if (cr == CL_SUCCESS)
+    cr = clSetKernelArg(k, 3, sizeof(cl_mem), &r->nodes);
+  if (cr == CL_SUCCESS)
+    cr = clSetKernelArg(k, 4, sizeof(cl_mem), &r->tris);
+  if (cr == CL_SUCCESS)
+    cr = clSetKernelArg(k, 5, sizeof(cl_mem), &vs->smap);
+  if (cr == CL_SUCCESS)
+    cr = clSetKernelArg(k, 6, sizeof ip, &ip);
+  size_t global[2] = {pitch / SHADOW_PACKET, rows}, local[2] = {lx, ly};
+  if (cr == CL_SUCCESS)
+    cr = clEnqueueNDRangeKernel(r->dev.queue, k, 2, NULL, global, local, 0, NULL, NULL);
+  if (cr != CL_SUCCESS) {
+    set_err(err, errlen, "[render] shadow map failed on %s: %s", r->dev.device_name,
+            cl_dev_strerror(cr));
+    return PROTO_E_DEVICE;
+  }
+  vs->smap_valid = 1;
+  return 0;
+}
+
+/* ---- The pass ------------------------------------------------------------------------------ */
+
+int render_volume_init(renderer_t *r, char *err, size_t errlen) {
+  struct vol_state *vs = calloc(1, sizeof *vs);
+  if (vs == NULL) {
+    set_err(err, errlen, "[renderer_create] out of memory");
+    return -1;
+  }
+  r->vol = vs;
+  if ((vs->kvol = cl_dev_kernel(&r->dev, "volumes", err, errlen)) == NULL ||
+      (vs->kshadow = cl_dev_kernel(&r->dev, "shadow_map", err, errlen)) == NULL)
+    return -1;
+  return 0;
+}
+
+void render_volume_free(renderer_t *r) {
+  struct vol_state *vs = r->vol;
+  if (vs == NULL)
+    return;
+  for (int i = 0; i < vs->nents; i++)
+    entry_clear(&vs->ents[i]);
+  free(vs->ents);
+  cl_mem bufs[3] = {vs->recs, vs->data, vs->smap};
+  for (int i = 0; i < 3; i++)
+    if (bufs[i])
+      clReleaseMemObject(bufs[i]);
+  if (vs->kvol)
+    clReleaseKernel(vs->kvol);
+  if (vs->kshadow)
+    clReleaseKernel(vs->kshadow);
+  free(vs->host_recs);
+  free(vs->skey.objs);
+  free(vs->skey.bvh);
+  free(vs);
+  r->vol = NULL;
+}
+
+/* The volumes a frame draws: the scene's (layer volumes) and the cloud (layer cloud). */
+static int frame_volumes(const render_scene_t *scene, unsigned layers, const rvolume_t **out,
+                         int cap) {
+  int n = 0;
+  for (int i = 0; (layers & LAYER_VOLUMES) && i < scene->nvolumes && n < cap; i++)
+    if (usable(&scene->volumes[i]))
+      out[n++] = &scene->volumes[i];
+  if ((layers & LAYER_CLOUD) && scene->cloud.grid != NULL && usable(&scene->cloud) && n < cap)
+    out[n++] = &scene->cloud;
+  return n;
+}
+
+typedef struct order {
+  double dist;
+  int index;
+} order_t;
+
+static int by_dist(const void *a, const void *b) {
+  const order_t *x = a, *y = b;
+  return x->dist < y->dist ? -1 : x->dist > y->dist;
+}
+
+int render_pass_volumes(renderer_t *r, const render_scene_t *scene, unsigned layers, int *ran,
+                        char *err, size_t errlen) {
+  *ran = 0;
+  struct vol_state *vs = r->vol;
+  int cap = scene->nvolumes + 1;
+  const rvolume_t **list = malloc(cap * sizeof *list);
+  order_t *ord = malloc(cap * sizeof *ord);
+  const vol_entry_t **drawn = malloc(cap * sizeof *drawn);
+  int rc = 0;
+  if (list == NULL || ord == NULL || drawn == NULL) {
+    set_err(err, errlen, "[render] out of memory for %d volumes", scene->nvolumes);
+    rc = PROTO_E_INTERNAL;
+    goto done;
+  }
+  int n = frame_volumes(scene, layers, list, cap);
+  if (n == 0)
+    goto done;
+  if (n > vs->nents) {
+    vol_entry_t *e = realloc(vs->ents, n * sizeof *e);
+    if (e == NULL) {
+      set_err(err, errlen, "[render] out of memory for %d volumes", n);
+      rc = PROTO_E_INTERNAL;
+      goto done;
+    }
+    memset(e + vs->nents, 0, (n - vs->nents) * sizeof *e);
+    vs->ents = e, vs->nents = n;
+  }
+  const float *l = r->frame.light_dir;
+  int changed = 0;
+  for (int i = 0; i < n; i++) {
+    float sigma = list[i]->density;
+    if (entry_matches(&vs->ents[i], list[i], sigma, l))
+      continue;
+    changed = 1;
+    if (entry_build(&vs->ents[i], list[i], sigma, l) != 0) {
+      entry_clear(&vs->ents[i]);
+      set_err(err, errlen, "[render] out of memory preparing volume %d", i);
+      rc = PROTO_E_INTERNAL;
+      goto done;
+    }
+  }
+  /* Lay the grids out in one buffer and upload them when anything changed. */
+  size_t total = 0;
+  for (int i = 0; i < n; i++) {
+    vol_entry_t *e = &vs->ents[i];
+    size_t nd = (size_t)e->dims[0] * e->dims[1] * e->dims[2];
+    if (e->empty)
+      continue;
+    changed |= e->off != total;
+    e->off = total;
+    total += nd;
+  }
+  changed |= total != vs->data_floats;
+  if (total == 0)
+    goto done;
+  if (render_ensure_buffer(r, &vs->data, &vs->cap_data, total, 4 * sizeof(float), CL_MEM_READ_ONLY,
+                           1, err, errlen)) {
+    rc = PROTO_E_DEVICE;
+    goto done;
+  }
+  cl_int cr = CL_SUCCESS;
+  if (changed) {
+    vs->data_floats = 0;
+    for (int i = 0; i < n && cr == CL_SUCCESS; i++) {
+      vol_entry_t *e = &vs->ents[i];
+      if (e->empty)
+        continue;
+      size_t nd = (size_t)e->dims[0] * e->dims[1] * e->dims[2];
+      cr = clEnqueueWriteBuffer(r->dev.queue, vs->data, CL_FALSE, e->off * 4 * sizeof(float),
+                                nd * 4 * sizeof(float), e->packed, 0, NULL, NULL);
+    }
+    if (cr == CL_SUCCESS)
+      vs->data_floats = total;
+  }
+
+  /* Records, nearest box first. */
+  int nd = 0;
+  for (int i = 0; i < n; i++) {
+    vol_entry_t *e = &vs->ents[i];
+    if (e->empty)
+      continue;
+    double d2 = 0;
+    for (int k = 0; k < 3; k++) {
+      double c = 0.5 * ((double)e->tmin[k] + e->tmax[k]) - r->frame.eye[k];
+      d2 += c * c;
+    }
+    ord[nd].dist = d2, ord[nd].index = i;
+    nd++;
+  }
+  qsort(ord, nd, sizeof *ord, by_dist);
+  if (grow_staging((void **)&vs->host_recs, &vs->host_recs_cap, (size_t)nd * VOL_STRIDE,
+                   sizeof(float)) != 0) {
+    set_err(err, errlen, "[render] out of memory for %d volumes", nd);
+    rc = PROTO_E_INTERNAL;
+    goto done;
+  }
+  for (int j = 0; j < nd; j++) {
+    const vol_entry_t *e = &vs->ents[ord[j].index];
+    const rvolume_t *v = list[ord[j].index];
+    float *rec = vs->host_recs + (size_t)j * VOL_STRIDE;
+    memset(rec, 0, VOL_STRIDE * sizeof(float));
+    for (int k = 0; k < 3; k++) {
+      double ext = (double)e->max[k] - e->min[k];
+      int32_t di = (int32_t)e->dims[k];
+      rec[VOL_TMIN + k] = e->tmin[k];
+      rec[VOL_TMAX + k] = e->tmax[k];
+      rec[VOL_BMIN + k] = e->min[k];
+      rec[VOL_INV + k] = (float)(e->dims[k] / ext);
+      memcpy(&rec[VOL_DIMS + k], &di, sizeof di);
+      rec[VOL_ALBEDO + k] = v->albedo[k];
+    }
+    int32_t off = (int32_t)e->off, ns = v->samples;
+    memcpy(&rec[VOL_OFF], &off, sizeof off);
+    memcpy(&rec[VOL_SAMPLES], &ns, sizeof ns);
+    rec[VOL_SIGMA] = v->density;
+    rec[VOL_PHASE_G] = v->phase_g;
+    drawn[j] = e;
+  }
+  if (render_ensure_buffer(r, &vs->recs, &vs->cap_recs, (size_t)nd * VOL_STRIDE, sizeof(float),
+                           CL_MEM_READ_ONLY, 1, err, errlen)) {
+    rc = PROTO_E_DEVICE;
+    goto done;
+  }
+  if (cr == CL_SUCCESS)
+    cr =
+        clEnqueueWriteBuffer(r->dev.queue, vs->recs, CL_FALSE, 0,
+                             (size_t)nd * VOL_STRIDE * sizeof(float), vs->host_recs, 0, NULL, NULL);
+  if (cr != CL_SUCCESS) {
+    set_err(err, errlen, "[render] volume upload failed on %s: %s", r->dev.device_name,
+            cl_dev_strerror(cr));
+    rc = PROTO_E_DEVICE;
+    goto done;
+  }
+
+  /* The shadow map, when something can cast a shadow. */
+  vfx_shadow_t sh;
+  memset(&sh, 0, sizeof sh);
+  sh.size = 1;
+  int casters = r->frame.nsph + r->frame.nconv + r->frame.ntri > 0;
+  int lit = l[0] != 0 || l[1] != 0 || l[2] != 0;
+  if (casters && lit) {
+    int size = scene->light.shadow_map > 0 ? scene->light.shadow_map : 1024;
+    fit_shadow(&sh, drawn, nd, l, size < 8 ? 8 : size);
+    if ((rc = render_shadow(r, vs, &sh, err, errlen)) != 0)
+      goto done;
+  }
+  cl_mem smap = sh.enabled ? vs->smap : vs->data;
+  cl_int spitch = sh.enabled ? vs->smap_pitch : 0, nv = nd;
+  cl_kernel k = vs->kvol;
+  cr = clSetKernelArg(k, 0, sizeof r->frame, &r->frame);
+  if (cr == CL_SUCCESS)
+    cr = clSetKernelArg(k, 1, sizeof sh, &sh);
+  if (cr == CL_SUCCESS)
+    cr = clSetKernelArg(k, 2, sizeof(cl_mem), &vs->recs);
+  if (cr == CL_SUCCESS)
+    cr = clSetKernelArg(k, 3, sizeof nv, &nv);
+  if (cr == CL_SUCCESS)
+    cr = clSetKernelArg(k, 4, sizeof(cl_mem), &vs->data);
+  if (cr == CL_SUCCESS)
+    cr = clSetKernelArg(k, 5, sizeof(cl_mem), &smap);
+  if (cr == CL_SUCCESS)
+    cr = clSetKernelArg(k, 6, sizeof spitch, &spitch);
+  if (cr == CL_SUCCESS)
+    cr = clSetKernelArg(k, 7, sizeof(cl_mem), &r->depth);
+  if (cr == CL_SUCCESS)
+    cr = clSetKernelArg(k, 8, sizeof(cl_mem), &r->linear);
+  size_t global[2] = {r->pitch / VOL_PACKET, r->rows};
+  /* The objects work-group's pixels, or fewer if the device shrank it below one packet. */
+  size_t local[2] = {r->objects_local[0] * PACKET / VOL_PACKET, r->objects_local[1]};
+  if (local[0] == 0)
+    local[0] = 1;
+  if (cr == CL_SUCCESS)
+    cr = clEnqueueNDRangeKernel(r->dev.queue, k, 2, NULL, global, local, 0, NULL, NULL);
+  if (cr == CL_SUCCESS)
+    cr = clFinish(r->dev.queue);
+  if (cr != CL_SUCCESS) {
+    set_err(err, errlen, "[render] volumes pass failed on %s: %s", r->dev.device_name,
+            cl_dev_strerror(cr));
+    rc = PROTO_E_DEVICE;
+    goto done;
+  }
+  *ran = 1;
+
+done:
+  free(list);
+  free(ord);
+  free(drawn);
+  return rc;
+}
