@@ -337,13 +337,32 @@ static tone_map_t tone_map_of(const char *s) {
   return TONE_ACES;
 }
 
-/* Builds the snapshot of a validated document, loading meshes; NULL with 'err' set. */
+/* The lattice spacing of a block of 'initial': its own, or h/2. */
+static double block_spacing(const cJSON *fluid, const cJSON *blk) {
+  double sp = get(blk, "spacing")->valuedouble;
+  return sp > 0 ? sp : 0.5 * get(fluid, "h")->valuedouble;
+}
+
+/* The lattice indices (x, y, z) of the particle 'i' of a block of layers nx × nz. */
+static void block_index(uint64_t i, uint64_t nx, uint64_t nz, uint64_t idx[3]) {
+  idx[0] = i % nx;
+  idx[2] = i / nx % nz;
+  idx[1] = i / (nx * nz);
+}
+
+static int inside(const double v[3], const double lo[3], const double hi[3]) {
+  for (int i = 0; i < 3; i++)
+    if (!(v[i] >= lo[i] && v[i] <= hi[i]))
+      return 0;
+  return 1;
+}
+
 /*
- * The fluid's checks across fields: the tank is not empty, and writes the real particle count
- * into fluid.count (read-only to clients).
+ * The fluid's checks across fields: the tank is not empty, every emitter's centre and every
+ * particle of the starting blocks lies inside it, and the blocks hold at most max_particles.
  */
-static int check_fluid(cJSON *doc, const particles_t *p, scene_error_t *err) {
-  cJSON *fluid = get(doc, "fluid");
+static int check_fluid(const cJSON *doc, scene_error_t *err) {
+  const cJSON *fluid = get(doc, "fluid");
   const cJSON *b = get(fluid, "bounds");
   double lo[3], hi[3];
   vec3d(get(b, "min"), lo);
@@ -352,7 +371,88 @@ static int check_fluid(cJSON *doc, const particles_t *p, scene_error_t *err) {
     if (!(lo[i] < hi[i]))
       return set_err(err, PROTO_E_INVALID_PARAMS, "fluid.bounds.max",
                      "fluid.bounds.max: must be above fluid.bounds.min on every axis");
-  cJSON_SetNumberValue(get(fluid, "count"), (p ? (double)p->count : 0));
+  char p[64];
+  int k = 0;
+  for (const cJSON *em = get(fluid, "emitters")->child; em; em = em->next, k++) {
+    double c[3];
+    vec3d(get(em, "position"), c);
+    if (!inside(c, lo, hi)) {
+      snprintf(p, sizeof p, "fluid.emitters.%d.position", k);
+      return set_err(err, PROTO_E_INVALID_PARAMS, p, "%s: must lie inside fluid.bounds", p);
+    }
+  }
+  double total = 0, cap = get(fluid, "max_particles")->valuedouble;
+  k = 0;
+  for (const cJSON *blk = get(fluid, "initial")->child; blk; blk = blk->next, k++) {
+    double o[3], top[3], sp = block_spacing(fluid, blk);
+    vec3d(get(blk, "origin"), o);
+    if (!inside(o, lo, hi)) {
+      snprintf(p, sizeof p, "fluid.initial.%d.origin", k);
+      return set_err(err, PROTO_E_INVALID_PARAMS, p, "%s: must lie inside fluid.bounds", p);
+    }
+    uint64_t n = (uint64_t)get(blk, "count")->valuedouble;
+    uint64_t nx = (uint64_t)get(blk, "nx")->valuedouble, nz = (uint64_t)get(blk, "nz")->valuedouble;
+    /* The far corner: the full rows and layers below the last particle reach their ends. */
+    uint64_t far[3] = {n < nx ? n - 1 : nx - 1, (n - 1) / (nx * nz),
+                       (n + nx - 1) / nx < nz ? (n + nx - 1) / nx - 1 : nz - 1};
+    for (int i = 0; i < 3; i++)
+      top[i] = o[i] + sp * (double)far[i];
+    if (!inside(top, lo, hi)) {
+      snprintf(p, sizeof p, "fluid.initial.%d.count", k);
+      return set_err(err, PROTO_E_INVALID_PARAMS, p,
+                     "%s: the block reaches (%g, %g, %g), outside fluid.bounds", p, top[0], top[1],
+                     top[2]);
+    }
+    total += (double)n;
+    if (total > cap) {
+      snprintf(p, sizeof p, "fluid.initial.%d.count", k);
+      return set_err(err, PROTO_E_INVALID_PARAMS, p,
+                     "%s: the blocks hold %.0f particles, more than fluid.max_particles (%.0f)", p,
+                     total, cap);
+    }
+  }
+  return 0;
+}
+
+/*
+ * The particles of fluid.initial in a checked document, in 'out' (NULL when there are none).
+ * Returns 0, or -1 on OOM.
+ */
+static int seed_particles(const cJSON *doc, particles_t **out) {
+  const cJSON *fluid = get(doc, "fluid");
+  const cJSON *blocks = get(fluid, "initial");
+  uint64_t total = 0;
+  for (const cJSON *blk = blocks->child; blk; blk = blk->next)
+    total += (uint64_t)get(blk, "count")->valuedouble;
+  *out = NULL;
+  if (total == 0)
+    return 0;
+  particles_t *p = particles_new((uint32_t)total);
+  if (!p)
+    return -1;
+  float lo[3], hi[3];
+  vec3f(get(get(fluid, "bounds"), "min"), lo);
+  vec3f(get(get(fluid, "bounds"), "max"), hi);
+  size_t at = 0;
+  for (const cJSON *blk = blocks->child; blk; blk = blk->next) {
+    double o[3], sp = block_spacing(fluid, blk);
+    float v[3];
+    vec3d(get(blk, "origin"), o);
+    vec3f(get(blk, "velocity"), v);
+    uint64_t n = (uint64_t)get(blk, "count")->valuedouble;
+    uint64_t nx = (uint64_t)get(blk, "nx")->valuedouble, nz = (uint64_t)get(blk, "nz")->valuedouble;
+    for (uint64_t i = 0; i < n; i++, at++) {
+      uint64_t idx[3];
+      block_index(i, nx, nz, idx);
+      for (int c = 0; c < 3; c++) {
+        /* Checked in double; the clamp only absorbs the rounding to float at the walls. */
+        float x = (float)(o[c] + sp * (double)idx[c]);
+        p->pos[3 * at + c] = fminf(fmaxf(x, lo[c]), hi[c]);
+        p->vel[3 * at + c] = v[c];
+      }
+    }
+  }
+  *out = p;
   return 0;
 }
 
@@ -374,6 +474,7 @@ static void compile_fluid(const cJSON *doc, particles_t *p, render_scene_t *rs) 
   rs->fluid.roughness = (float)get(mat, "roughness")->valuedouble;
 }
 
+/* Builds the snapshot of a validated document, loading meshes; NULL with 'err' set. */
 static render_scene_t *compile(const cJSON *doc, particles_t *particles, scene_error_t *err) {
   render_scene_t *rs = calloc(1, sizeof *rs);
   if (!rs) {
@@ -450,42 +551,63 @@ static render_scene_t *compile(const cJSON *doc, particles_t *particles, scene_e
 }
 
 /*
- * Validates 'doc' in place (defaults, normalisation), checks it across fields, sets each
+ * Validates 'doc' in place (defaults, normalisation), checks it across fields and sets each
  * keyframed wave field to its value at the document's sim.time (keyframes own their field: a
- * value written there is replaced) and compiles it. Returns the new snapshot, or NULL with
- * 'err' set.
+ * value written there is replaced). Returns 0, or -1 with 'err' set.
  */
-static render_scene_t *prepare(cJSON *doc, particles_t *particles, scene_error_t *err) {
+static int prepare(cJSON *doc, scene_error_t *err) {
   sch_error_t se;
-  if (sch_validate(&scene_schema, doc, "", &se) != 0) {
-    set_err(err, PROTO_E_INVALID_PARAMS, se.path, "%s", se.message);
-    return NULL;
-  }
-  if (check_cross(doc, err) != 0 || check_waves(doc, err) != 0 ||
-      check_fluid(doc, particles, err) != 0)
-    return NULL;
+  if (sch_validate(&scene_schema, doc, "", &se) != 0)
+    return set_err(err, PROTO_E_INVALID_PARAMS, se.path, "%s", se.message);
+  if (check_cross(doc, err) != 0 || check_waves(doc, err) != 0 || check_fluid(doc, err) != 0)
+    return -1;
   double now = get(get(doc, "sim"), "time")->valuedouble;
   const sch_field_t *wf = wave_fields();
   for (cJSON *w = get(doc, "waves")->child; w; w = w->next)
     anim_apply_keys(w, wf, now);
-  return compile(doc, particles, err);
+  return 0;
 }
 
-/* Makes 'doc' (owned, taken in every case) the scene's document if it is valid. */
+/*
+ * Makes 'doc' (owned, taken in every case) the scene's document if it is valid. A new value of
+ * fluid.initial (or the first document) replaces the particles by its blocks.
+ */
 static int commit(scene_t *s, cJSON *doc, scene_error_t *err) {
-  render_scene_t *rs = prepare(doc, s->particles, err);
-  if (!rs) {
-    cJSON_Delete(doc);
-    cache_prune();
-    return -1;
+  particles_t *particles = s->particles;
+  int reseed = 0;
+  render_scene_t *rs = NULL;
+  if (prepare(doc, err) != 0)
+    goto fail;
+  const cJSON *init = get(get(doc, "fluid"), "initial");
+  if (!s->doc || !cJSON_Compare(init, get(get(s->doc, "fluid"), "initial"), 1)) {
+    if (seed_particles(doc, &particles) != 0) {
+      set_err(err, PROTO_E_INTERNAL, "", "out of memory");
+      goto fail;
+    }
+    reseed = 1;
   }
+  cJSON_SetNumberValue(get(get(doc, "fluid"), "count"), (particles ? (double)particles->count : 0));
+  rs = compile(doc, particles, err);
+  if (!rs)
+    goto fail;
   cJSON_Delete(s->doc);
   s->doc = doc;
   render_scene_unref(s->snapshot);
   s->snapshot = rs;
   s->version++;
+  if (reseed) {
+    particles_unref(s->particles);
+    s->particles = particles;
+    s->particles_epoch++;
+  }
   cache_prune();
   return 0;
+fail:
+  if (reseed)
+    particles_unref(particles);
+  cJSON_Delete(doc);
+  cache_prune();
+  return -1;
 }
 
 /* ---- Public API ---- */
