@@ -25,6 +25,14 @@
 #include "worker.h"
 
 #define MIN_CAPACITY 1024u
+/*
+ * Slots every simulation keeps free past its last particle. kernels/sph.cl reads neighbours
+ * eight at a time, up to seven past the end of a run, and the device copy of the last
+ * velocity component has no written slack beyond the capacity's stride: a particle within
+ * seven of the stride's end would fold unwritten memory (NaN, as often as not) into its
+ * viscosity sum. Keeping the count at least this far below the capacity avoids that.
+ */
+#define OVERREACH 8u
 
 struct fluid_host {
   fluid_sim_t *sim;     /* Worker thread only. */
@@ -120,6 +128,36 @@ static uint32_t capacity_for(uint32_t n) {
   return c;
 }
 
+/*
+ * The most particles one step of dt can add through the emitters of 'p': each adds the whole
+ * part of its accumulated rate × dt, so at most ceil(rate × dt) + 1.
+ */
+static uint32_t emit_burst(const fluid_params_t *p, double dt) {
+  double b = 0;
+  for (int e = 0; e < p->nemitters; e++)
+    b += ceil((double)p->emitters[e].rate * dt) + 1;
+  return b < FLUID_MAX_PARTICLES / 2 ? (uint32_t)b : FLUID_MAX_PARTICLES / 2;
+}
+
+/* Keeps the first 'n' particles of 'sim' (the oldest: get_particles returns them in the order
+ * they were set or emitted). */
+static int trim(fluid_sim_t *sim, uint32_t n, char *err, size_t errlen) {
+  uint32_t have = fluid_sim_count(sim);
+  if (have <= n)
+    return 0;
+  float *pos = malloc((size_t)have * 12), *vel = malloc((size_t)have * 12);
+  int rc = -1;
+  if (pos && vel) {
+    fluid_sim_get_particles(sim, pos, vel);
+    rc = fluid_sim_set_particles(sim, pos, vel, n, err, errlen);
+  } else {
+    snprintf(err, errlen, "out of memory");
+  }
+  free(pos);
+  free(vel);
+  return rc;
+}
+
 /* Worker thread: steps the job's particles into a new buffer. */
 static void step_run(renderer_t *r, job_t *j) {
   fluid_job_t *fj = (fluid_job_t *)j;
@@ -138,14 +176,21 @@ static void step_run(renderer_t *r, job_t *j) {
   }
   h->sim_gen = 0;
   uint32_t n = src ? src->count : 0; /* NULL: none yet, for the emitters to fill. */
-  /* With emitters the capacity is their limit, so that the simulation (and the emitters'
-   * random sequence) lives on as they fill it; without, room for the particles there are. */
-  if (fj->params.nemitters > 0 && n <= fj->emit_max) {
-    fj->params.max_particles = fj->emit_max;
+  /* With emitters the capacity is their limit plus what one step of them can add, so that the
+   * simulation (and the emitters' random sequence) lives on as they fill it; without, room for
+   * the particles there are. Either way OVERREACH slots stay free past the last particle. */
+  uint32_t burst = emit_burst(&fj->params, fj->dt), emit_max = fj->emit_max;
+  if (emit_max > FLUID_MAX_PARTICLES - OVERREACH - burst)
+    emit_max =
+        burst + OVERREACH < FLUID_MAX_PARTICLES ? FLUID_MAX_PARTICLES - OVERREACH - burst : 0;
+  int emitting = fj->params.nemitters > 0 && n < emit_max;
+  if (fj->params.nemitters > 0 && n <= emit_max) {
+    fj->params.max_particles = emit_max + burst + OVERREACH;
   } else {
-    fj->params.max_particles = capacity_for(n);
-    fj->params.nemitters = 0;
+    fj->params.max_particles = capacity_for(n + OVERREACH);
   }
+  if (!emitting)
+    fj->params.nemitters = 0;
   if (h->sim && h->cap != fj->params.max_particles) {
     fluid_sim_destroy(h->sim);
     h->sim = NULL;
@@ -175,11 +220,23 @@ static void step_run(renderer_t *r, job_t *j) {
     j->code = PROTO_E_INVALID_PARAMS;
     goto out;
   }
-  for (unsigned i = 0; i < fj->steps; i++)
+  for (unsigned i = 0; i < fj->steps; i++) {
     if (fluid_sim_step(h->sim, fj->dt, j->err, sizeof j->err) != 0) {
       j->code = PROTO_E_DEVICE;
       goto out;
     }
+    if (emitting && fluid_sim_count(h->sim) >= emit_max) {
+      /* Full: the emitters stop (their progress kept), and what the last step added beyond
+       * max_particles goes, newest first. */
+      emitting = 0;
+      fj->params.nemitters = 0;
+      if (trim(h->sim, emit_max, j->err, sizeof j->err) != 0 ||
+          fluid_sim_set_params(h->sim, &fj->params, j->err, sizeof j->err) != 0) {
+        j->code = PROTO_E_INTERNAL;
+        goto out;
+      }
+    }
+  }
   fj->out = particles_new(fluid_sim_count(h->sim));
   if (!fj->out) {
     j->code = PROTO_E_INTERNAL;
