@@ -414,9 +414,58 @@ static int check_fluid(const cJSON *doc, scene_error_t *err) {
   return 0;
 }
 
+/* An opaque object as the fluid collides with it (sim_fluid.h): a sphere (an ellipsoid when
+ * scaled), a box or a plane; 'kind' -1 for the shapes that do not collide. */
+typedef struct solid {
+  int kind; /* 0 sphere, 1 box, 2 plane, -1 none. */
+  double c[3], r[3][3], semi[3];
+} solid_t;
+
+static solid_t solid_of(const cJSON *o) {
+  solid_t b;
+  const char *shape = get(o, "shape")->valuestring;
+  b.kind = strcmp(shape, "sphere") == 0  ? 0
+           : strcmp(shape, "box") == 0   ? 1
+           : strcmp(shape, "plane") == 0 ? 2
+                                         : -1;
+  double rot[3], sc[3];
+  vec3d(get(o, "position"), b.c);
+  vec3d(get(o, "rotation"), rot);
+  vec3d(get(o, "scale"), sc);
+  /* R = Rz Ry Rx (X applied first), as the renderer and the simulation build it. */
+  double a = rot[0] * (M_PI / 180), bb = rot[1] * (M_PI / 180), cc = rot[2] * (M_PI / 180);
+  double ca = cos(a), sa = sin(a), cb = cos(bb), sb = sin(bb), cz = cos(cc), sz = sin(cc);
+  double r[3][3] = {{cz * cb, cz * sb * sa - sz * ca, cz * sb * ca + sz * sa},
+                    {sz * cb, sz * sb * sa + cz * ca, sz * sb * ca - cz * sa},
+                    {-sb, cb * sa, cb * ca}};
+  memcpy(b.r, r, sizeof r);
+  for (int i = 0; i < 3; i++)
+    b.semi[i] = 0.5 * fabs(sc[i]);
+  return b;
+}
+
+/* Whether point 'x' lies inside 'b', as the fluid's collision sees it. */
+static int solid_inside(const solid_t *b, const float x[3]) {
+  double d[3], q[3];
+  for (int i = 0; i < 3; i++)
+    d[i] = (double)x[i] - b->c[i];
+  for (int j = 0; j < 3; j++) /* q = R^T d: the point in object space. */
+    q[j] = b->r[0][j] * d[0] + b->r[1][j] * d[1] + b->r[2][j] * d[2];
+  if (b->kind == 0) {
+    double u = 0;
+    for (int i = 0; i < 3; i++)
+      u += (q[i] / b->semi[i]) * (q[i] / b->semi[i]);
+    return u < 1;
+  }
+  if (b->kind == 1)
+    return fabs(q[0]) < b->semi[0] && fabs(q[1]) < b->semi[1] && fabs(q[2]) < b->semi[2];
+  return b->kind == 2 && q[1] < 0;
+}
+
 /*
- * The particles of fluid.initial in a checked document, in 'out' (NULL when there are none).
- * Returns 0, or -1 on OOM.
+ * The particles of fluid.initial in a checked document, in 'out' (NULL when there are none):
+ * each block's lattice, less the points inside an opaque object the fluid collides with
+ * (which would burst out of it). Returns 0, or -1 on OOM.
  */
 static int seed_particles(const cJSON *doc, particles_t **out) {
   const cJSON *fluid = get(doc, "fluid");
@@ -433,6 +482,17 @@ static int seed_particles(const cJSON *doc, particles_t **out) {
   float lo[3], hi[3];
   vec3f(get(get(fluid, "bounds"), "min"), lo);
   vec3f(get(get(fluid, "bounds"), "max"), hi);
+  int nsolid = 0;
+  solid_t *solids = malloc(((size_t)cJSON_GetArraySize(get(doc, "objects")) + 1) * sizeof *solids);
+  if (!solids) {
+    particles_unref(p);
+    return -1;
+  }
+  for (const cJSON *o = get(doc, "objects")->child; o; o = o->next) {
+    solids[nsolid] = solid_of(o);
+    if (solids[nsolid].kind >= 0 && nsolid < 256) /* The simulation's first 256 colliders. */
+      nsolid++;
+  }
   size_t at = 0;
   for (const cJSON *blk = blocks->child; blk; blk = blk->next) {
     double o[3], sp = block_spacing(fluid, blk);
@@ -441,17 +501,28 @@ static int seed_particles(const cJSON *doc, particles_t **out) {
     vec3f(get(blk, "velocity"), v);
     uint64_t n = (uint64_t)get(blk, "count")->valuedouble;
     uint64_t nx = (uint64_t)get(blk, "nx")->valuedouble, nz = (uint64_t)get(blk, "nz")->valuedouble;
-    for (uint64_t i = 0; i < n; i++, at++) {
+    for (uint64_t i = 0; i < n; i++) {
       uint64_t idx[3];
       block_index(i, nx, nz, idx);
+      float *x = p->pos + 3 * at;
       for (int c = 0; c < 3; c++) {
         /* Checked in double; the clamp only absorbs the rounding to float at the walls. */
-        float x = (float)(o[c] + sp * (double)idx[c]);
-        p->pos[3 * at + c] = fminf(fmaxf(x, lo[c]), hi[c]);
+        x[c] = fminf(fmaxf((float)(o[c] + sp * (double)idx[c]), lo[c]), hi[c]);
         p->vel[3 * at + c] = v[c];
       }
+      int hidden = 0;
+      for (int k = 0; k < nsolid && !hidden; k++)
+        hidden = solid_inside(&solids[k], x);
+      if (!hidden)
+        at++;
     }
   }
+  free(solids);
+  if (at == 0) {
+    particles_unref(p);
+    return 0;
+  }
+  p->count = (uint32_t)at;
   *out = p;
   return 0;
 }

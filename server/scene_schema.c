@@ -530,7 +530,9 @@ static const sch_field_t fluid_block_fields[] = {
      .def = 24},
     {.name = "count",
      .type = SCH_INTEGER,
-     .desc = "Particles in the block; every one must lie inside fluid.bounds.",
+     .desc = "Lattice points in the block; every one must lie inside fluid.bounds. Points "
+             "inside a sphere, box or plane of 'objects' (the fluid's colliders) are left out, "
+             "so fluid.count may be smaller.",
      .min = 1,
      .max = FLUID_PARTICLES,
      .flags = SCH_REQUIRED},

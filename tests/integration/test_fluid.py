@@ -230,6 +230,34 @@ def initial_blocks(s):
     vel = unpack(vatt)
     s.check(vel[:100] == [(0, 0, 0)] * 100 and vel[100:] == [(0, 1.5, 0)] * 7,
             "each block's velocity")
+    # Lattice points inside the fluid's colliders are left out: a sphere of radius 0.5 at the
+    # centre of a 10 x 10 x 10 block, a box in one corner, and a plane below y = -1.
+    c.ok("scene.set", {"scene": "ini", "patch": {
+        "objects": [{"shape": "sphere", "position": [0, 0, 0]},
+                    {"shape": "box", "position": [1.3, 1.3, 1.3], "rotation": [0, 45, 0]},
+                    {"shape": "plane", "position": [0, -1.01, 0]},
+                    {"shape": "tetrahedron", "position": [-1.3, 1.3, 1.3]}],
+        "fluid": {"initial": [{"origin": [-1.35, -1.35, -1.35], "spacing": 0.3, "nx": 10,
+                               "nz": 10, "count": 1000}]}}})
+    _, att = c.ok("fluid.get_particles", {"scene": "ini"})
+    got = unpack(att)
+    lattice = table1_layers(1000, [-1.35] * 3, 0.3, 10, 10)
+    co, sn = math.cos(math.radians(45)), math.sin(math.radians(45))
+
+    def in_box(p):
+        d = [p[k] - 1.3 for k in range(3)]
+        q = (co * d[0] - sn * d[2], d[1], sn * d[0] + co * d[2])  # R_y(45)^T d
+        return all(abs(v) < 0.5 for v in q)
+
+    want = [p for p in lattice
+            if math.dist(p, (0, 0, 0)) >= 0.5 and not in_box(p) and p[1] >= -1.01]
+    s.check(len(want) < 1000 - 100, "the objects cover lattice points", str(len(want)))
+    s.eq(len(got), len(want), "points inside the sphere, box and plane are left out")
+    s.check(got == want, "the rest of the lattice, in order")
+    s.eq(c.ok("scene.get", {"scene": "ini", "path": "fluid.count"})[0], len(want),
+         "fluid.count counts what is left")
+    c.ok("scene.set", {"scene": "ini", "patch": {"objects": [], "fluid": {"initial": blocks}}})
+
     # Simulated and rendered like any particles.
     c.ok("scene.set", {"scene": "ini", "path": "fluid.enabled", "value": True})
     c.ok("sim.step", {"scene": "ini", "steps": 3}, timeout=120)
