@@ -438,9 +438,11 @@ static const sch_field_t fluid_material_fields[] = {
     {0},
 };
 
-/* Emitters and starting blocks (sim_fluid.h: FLUID_MAX_EMITTERS, FLUID_MAX_PARTICLES). */
+/* Emitters (sim_fluid.h: FLUID_MAX_EMITTERS) and the most particles a scene's own fields can
+ * make: SPEC §3's default limits.particles, so that a document cannot ask for more memory than
+ * fluid.set_particles could fill. */
 #define FLUID_EMITTERS 16
-#define FLUID_PARTICLES (1 << 22)
+#define FLUID_PARTICLES (1 << 20)
 static const char *const emit_shapes[] = {"sphere", "box", NULL};
 static const double emit_size[3] = {0.5, 0.5, 0.5};
 
