@@ -26,13 +26,18 @@
 
 #define MIN_CAPACITY 1024u
 /*
- * Slots every simulation keeps free past its last particle. kernels/sph.cl reads neighbours
- * eight at a time, up to seven past the end of a run, and the device copy of the last
- * velocity component has no written slack beyond the capacity's stride: a particle within
- * seven of the stride's end would fold unwritten memory (NaN, as often as not) into its
- * viscosity sum. Keeping the count at least this far below the capacity avoids that.
+ * Slots every simulation keeps free past its capacity. kernels/sph.cl reads neighbours eight
+ * at a time, up to seven past the end of a run, and the device copy of the last velocity
+ * component has no written slack beyond its stride (the capacity rounded up to the kernels'
+ * work-group size, a power of two from 16 to 64): a particle within seven of the stride's end
+ * would fold unwritten memory (NaN, as often as not) into its viscosity sum. safe_cap keeps
+ * this many slots between the capacity and the stride.
  */
 #define OVERREACH 8u
+#define STRIDE_ALIGN 64u
+/* Room past max_particles for what the emitters add in the step that reaches it (each adds the
+ * whole part of its accumulated rate × dt); trimmed after that step. */
+#define MAX_OVERSHOOT 4096u
 
 struct fluid_host {
   fluid_sim_t *sim;     /* Worker thread only. */
@@ -128,15 +133,10 @@ static uint32_t capacity_for(uint32_t n) {
   return c;
 }
 
-/*
- * The most particles one step of dt can add through the emitters of 'p': each adds the whole
- * part of its accumulated rate × dt, so at most ceil(rate × dt) + 1.
- */
-static uint32_t emit_burst(const fluid_params_t *p, double dt) {
-  double b = 0;
-  for (int e = 0; e < p->nemitters; e++)
-    b += ceil((double)p->emitters[e].rate * dt) + 1;
-  return b < FLUID_MAX_PARTICLES / 2 ? (uint32_t)b : FLUID_MAX_PARTICLES / 2;
+/* A capacity of at least 'want' with OVERREACH slots before the next multiple of STRIDE_ALIGN
+ * (and so before the stride of any work-group size dividing it). */
+static uint32_t safe_cap(uint32_t want) {
+  return (want + OVERREACH + STRIDE_ALIGN - 1) / STRIDE_ALIGN * STRIDE_ALIGN - OVERREACH;
 }
 
 /* Keeps the first 'n' particles of 'sim' (the oldest: get_particles returns them in the order
@@ -176,19 +176,15 @@ static void step_run(renderer_t *r, job_t *j) {
   }
   h->sim_gen = 0;
   uint32_t n = src ? src->count : 0; /* NULL: none yet, for the emitters to fill. */
-  /* With emitters the capacity is their limit plus what one step of them can add, so that the
-   * simulation (and the emitters' random sequence) lives on as they fill it; without, room for
-   * the particles there are. Either way OVERREACH slots stay free past the last particle. */
-  uint32_t burst = emit_burst(&fj->params, fj->dt), emit_max = fj->emit_max;
-  if (emit_max > FLUID_MAX_PARTICLES - OVERREACH - burst)
-    emit_max =
-        burst + OVERREACH < FLUID_MAX_PARTICLES ? FLUID_MAX_PARTICLES - OVERREACH - burst : 0;
+  /* With emitters the capacity is their limit plus MAX_OVERSHOOT, so that the simulation (and
+   * the emitters' random sequence) lives on as they fill it; without, room for the particles
+   * there are. Either way OVERREACH slots stay free past the capacity. */
+  uint32_t emit_max = fj->emit_max;
   int emitting = fj->params.nemitters > 0 && n < emit_max;
-  if (fj->params.nemitters > 0 && n <= emit_max) {
-    fj->params.max_particles = emit_max + burst + OVERREACH;
-  } else {
+  if (fj->params.nemitters > 0 && n <= emit_max)
+    fj->params.max_particles = safe_cap(emit_max + MAX_OVERSHOOT);
+  else
     fj->params.max_particles = capacity_for(n + OVERREACH);
-  }
   if (!emitting)
     fj->params.nemitters = 0;
   if (h->sim && h->cap != fj->params.max_particles) {
