@@ -378,6 +378,35 @@ def bad_emitters_and_blocks(s):
 
 
 @T
+def presets(s):
+    """The paper's presets and the demo seed their particles from fluid.initial."""
+    c = s.srv.connect()
+    for preset, n in (("paper-001", 4096), ("paper-001-16384", 16384),
+                      ("paper-001-65536", 65536), ("paper-001-flow", 4096),
+                      ("paper-001-flow-16384", 16384)):
+        c.ok("scene.create", {"name": preset, "preset": preset})
+        f = c.ok("scene.get", {"scene": preset, "path": "fluid"})[0]
+        s.eq(f.get("count"), n, "%s holds %d particles" % (preset, n))
+        s.check(f.get("enabled") is True and f.get("h") == H and f.get("threshold") == 0.765625,
+                "%s: an enabled fluid with the paper's h and T" % preset)
+        if not preset.startswith("paper-001-flow"):
+            blk = f["initial"][0]
+            s.eq((blk["nx"], blk["nz"], blk["spacing"]), (24, 24, 0.305),
+                 "%s: layers of 24 x 24 at spacing h/2" % preset)
+        c.ok("scene.delete", {"name": preset})
+    c.ok("scene.create", {"name": "dm", "preset": "demo"})
+    f = c.ok("scene.get", {"scene": "dm", "path": "fluid"})[0]
+    s.check(f.get("enabled") is True and f.get("count", 0) > 100, "the demo has a pool of water",
+            "count %s" % f.get("count"))
+    r, _ = c.ok("sim.step", {"scene": "dm", "steps": 5}, timeout=120)
+    _, att = c.ok("fluid.get_particles", {"scene": "dm"})
+    lo, hi = f["bounds"]["min"], f["bounds"]["max"]
+    s.check(all(math.isfinite(p[k]) and lo[k] <= p[k] <= hi[k] for p in unpack(att)
+                for k in range(3)), "the demo's pool stays in its basin")
+    c.ok("scene.delete", {"name": "dm"})
+
+
+@T
 def particle_limit(s):
     d = mock.tempfile.mkdtemp(prefix="volfx-fluid-")
     path = os.path.join(d, "volfxd.json")
