@@ -7,8 +7,10 @@
  * is created, used and destroyed on the worker thread only. A step job uploads the scene's
  * current particles, steps them and reads them back into a new particles_t, which its 'done'
  * callback swaps into the scene unless the scene went away or its particles were replaced
- * meanwhile (fluid.set_particles wins). Step jobs queued back to back chain: each continues
- * from the state the last one left on the device, so pipelined sim.step calls all count.
+ * meanwhile (fluid.set_particles or a new fluid.initial wins: the scene's particles_epoch).
+ * Emitters (fluid.emitters) add particles inside the simulation, up to fluid.max_particles. Step
+ * jobs queued back to back chain: each continues from the state the last one left on the device, so
+ * pipelined sim.step calls all count.
  */
 #include <math.h>
 #include <stdio.h>
@@ -23,12 +25,25 @@
 #include "worker.h"
 
 #define MIN_CAPACITY 1024u
+/*
+ * Slots every simulation keeps free past its capacity. kernels/sph.cl reads neighbours eight
+ * at a time, up to seven past the end of a run, and the device copy of the last velocity
+ * component has no written slack beyond its stride (the capacity rounded up to the kernels'
+ * work-group size, a power of two from 16 to 64): a particle within seven of the stride's end
+ * would fold unwritten memory (NaN, as often as not) into its viscosity sum. safe_cap keeps
+ * this many slots between the capacity and the stride.
+ */
+#define OVERREACH 8u
+#define STRIDE_ALIGN 64u
+/* Room past max_particles for what the emitters add in the step that reaches it (each adds the
+ * whole part of its accumulated rate × dt); trimmed after that step. */
+#define MAX_OVERSHOOT 4096u
 
 struct fluid_host {
   fluid_sim_t *sim;     /* Worker thread only. */
   uint32_t cap;         /* sim's max_particles. Worker thread only. */
-  uint64_t sim_gen;     /* The set_gen the sim's particles descend from; 0: none. Worker. */
-  uint64_t set_gen;     /* Counts fluid.set_particles calls, from 1. Loop thread only. */
+  uint64_t sim_gen;     /* The scene's particles_epoch the sim's particles descend from; 0:
+                           none. Worker thread only. */
   scene_entry_t *entry; /* NULL once the scene is removed. Loop thread only. */
   int busy;             /* Step jobs in flight. Loop thread only. */
 };
@@ -39,9 +54,10 @@ typedef struct fluid_job {
   call_t *call;       /* The sim.step to answer, or NULL (sim.play). */
   particles_t *in;    /* The particles stepped (a reference). */
   particles_t *out;   /* The result, NULL on failure. */
-  uint64_t gen;       /* host->set_gen when submitted. */
+  uint64_t gen;       /* The scene's particles_epoch when submitted. */
   double time, frame; /* The clock sim.step answers with. */
   fluid_params_t params;
+  uint32_t emit_max; /* The emitters stop at this many particles. */
   unsigned steps;
   double dt;
 } fluid_job_t;
@@ -55,7 +71,44 @@ static void vec3(const cJSON *a, float out[3]) {
     out[i] = (float)cJSON_GetArrayItem(a, i)->valuedouble;
 }
 
-/* The simulation parameters of the scene's validated document. */
+/* The most particles the emitters fill the scene's fluid to: fluid.max_particles within the
+ * server's limit. */
+static uint32_t emit_cap(const cJSON *doc, uint32_t limit) {
+  double m = get(get(doc, "fluid"), "max_particles")->valuedouble;
+  if (limit > FLUID_MAX_PARTICLES)
+    limit = FLUID_MAX_PARTICLES;
+  return m < (double)limit ? (uint32_t)m : limit;
+}
+
+/* Whether the fluid of 'doc' has an emitter that adds particles. */
+static int emits(const cJSON *doc) {
+  for (const cJSON *em = get(get(doc, "fluid"), "emitters")->child; em; em = em->next)
+    if (get(em, "rate")->valuedouble > 0)
+      return 1;
+  return 0;
+}
+
+/* The emitters of the fluid of 'doc' into 'p'. */
+static void emitters_of(const cJSON *doc, fluid_params_t *p) {
+  p->nemitters = 0;
+  for (const cJSON *em = get(get(doc, "fluid"), "emitters")->child;
+       em && p->nemitters < FLUID_MAX_EMITTERS; em = em->next) {
+    fluid_emitter_t *m = &p->emitters[p->nemitters++];
+    int box = strcmp(get(em, "shape")->valuestring, "box") == 0;
+    m->shape = box ? FLUID_EMIT_BOX : FLUID_EMIT_SPHERE;
+    vec3(get(em, "position"), m->position);
+    if (box) {
+      vec3(get(em, "size"), m->size);
+    } else {
+      m->size[0] = (float)get(em, "radius")->valuedouble;
+      m->size[1] = m->size[2] = 0;
+    }
+    m->rate = (float)get(em, "rate")->valuedouble;
+    vec3(get(em, "velocity"), m->velocity);
+  }
+}
+
+/* The simulation parameters of the scene's validated document, emitters included. */
 static void params_of(const cJSON *doc, fluid_params_t *p) {
   const cJSON *f = get(doc, "fluid");
   fluid_params_default(p);
@@ -69,6 +122,7 @@ static void params_of(const cJSON *doc, fluid_params_t *p) {
   vec3(get(get(f, "bounds"), "min"), p->bounds_min);
   vec3(get(get(f, "bounds"), "max"), p->bounds_max);
   p->seed = (uint64_t)get(get(doc, "sim"), "seed")->valuedouble;
+  emitters_of(doc, p);
 }
 
 /* The capacity for 'n' particles: a power of two, so that a growing fluid rarely reallocates. */
@@ -77,6 +131,31 @@ static uint32_t capacity_for(uint32_t n) {
   while (c < n && c < FLUID_MAX_PARTICLES)
     c <<= 1;
   return c;
+}
+
+/* A capacity of at least 'want' with OVERREACH slots before the next multiple of STRIDE_ALIGN
+ * (and so before the stride of any work-group size dividing it). */
+static uint32_t safe_cap(uint32_t want) {
+  return (want + OVERREACH + STRIDE_ALIGN - 1) / STRIDE_ALIGN * STRIDE_ALIGN - OVERREACH;
+}
+
+/* Keeps the first 'n' particles of 'sim' (the oldest: get_particles returns them in the order
+ * they were set or emitted). */
+static int trim(fluid_sim_t *sim, uint32_t n, char *err, size_t errlen) {
+  uint32_t have = fluid_sim_count(sim);
+  if (have <= n)
+    return 0;
+  float *pos = malloc((size_t)have * 12), *vel = malloc((size_t)have * 12);
+  int rc = -1;
+  if (pos && vel) {
+    fluid_sim_get_particles(sim, pos, vel);
+    rc = fluid_sim_set_particles(sim, pos, vel, n, err, errlen);
+  } else {
+    snprintf(err, errlen, "out of memory");
+  }
+  free(pos);
+  free(vel);
+  return rc;
 }
 
 /* Worker thread: steps the job's particles into a new buffer. */
@@ -96,8 +175,18 @@ static void step_run(renderer_t *r, job_t *j) {
     src = chained;
   }
   h->sim_gen = 0;
-  uint32_t n = src->count;
-  fj->params.max_particles = capacity_for(n);
+  uint32_t n = src ? src->count : 0; /* NULL: none yet, for the emitters to fill. */
+  /* With emitters the capacity is their limit plus MAX_OVERSHOOT, so that the simulation (and
+   * the emitters' random sequence) lives on as they fill it; without, room for the particles
+   * there are. Either way OVERREACH slots stay free past the capacity. */
+  uint32_t emit_max = fj->emit_max;
+  int emitting = fj->params.nemitters > 0 && n < emit_max;
+  if (fj->params.nemitters > 0 && n <= emit_max)
+    fj->params.max_particles = safe_cap(emit_max + MAX_OVERSHOOT);
+  else
+    fj->params.max_particles = capacity_for(n + OVERREACH);
+  if (!emitting)
+    fj->params.nemitters = 0;
   if (h->sim && h->cap != fj->params.max_particles) {
     fluid_sim_destroy(h->sim);
     h->sim = NULL;
@@ -117,7 +206,8 @@ static void step_run(renderer_t *r, job_t *j) {
       goto out;
     }
   }
-  if (fluid_sim_set_particles(h->sim, src->pos, src->vel, n, j->err, sizeof j->err) != 0) {
+  if (fluid_sim_set_particles(h->sim, src ? src->pos : NULL, src ? src->vel : NULL, n, j->err,
+                              sizeof j->err) != 0) {
     j->code = PROTO_E_INVALID_PARAMS;
     goto out;
   }
@@ -126,11 +216,23 @@ static void step_run(renderer_t *r, job_t *j) {
     j->code = PROTO_E_INVALID_PARAMS;
     goto out;
   }
-  for (unsigned i = 0; i < fj->steps; i++)
+  for (unsigned i = 0; i < fj->steps; i++) {
     if (fluid_sim_step(h->sim, fj->dt, j->err, sizeof j->err) != 0) {
       j->code = PROTO_E_DEVICE;
       goto out;
     }
+    if (emitting && fluid_sim_count(h->sim) >= emit_max) {
+      /* Full: the emitters stop (their progress kept), and what the last step added beyond
+       * max_particles goes, newest first. */
+      emitting = 0;
+      fj->params.nemitters = 0;
+      if (trim(h->sim, emit_max, j->err, sizeof j->err) != 0 ||
+          fluid_sim_set_params(h->sim, &fj->params, j->err, sizeof j->err) != 0) {
+        j->code = PROTO_E_INTERNAL;
+        goto out;
+      }
+    }
+  }
   fj->out = particles_new(fluid_sim_count(h->sim));
   if (!fj->out) {
     j->code = PROTO_E_INTERNAL;
@@ -150,7 +252,8 @@ static void step_done(job_t *j) {
   h->busy--;
   scene_entry_t *e = h->entry;
   int published = 0;
-  if (j->code == 0 && e && fj->gen == h->set_gen && scene_set_particles(e->scene, fj->out) == 0)
+  if (j->code == 0 && e && fj->gen == e->scene->particles_epoch &&
+      scene_set_particles(e->scene, fj->out) == 0)
     published = 1;
   if (!published)
     particles_unref(fj->out);
@@ -172,8 +275,8 @@ static void step_done(job_t *j) {
 
 int fluid_wants_step(const scene_entry_t *e) {
   const scene_t *s = e->scene;
-  return cJSON_IsTrue(get(get(s->doc, "fluid"), "enabled")) && s->particles &&
-         s->particles->count > 0;
+  return cJSON_IsTrue(get(get(s->doc, "fluid"), "enabled")) &&
+         ((s->particles && s->particles->count > 0) || emits(s->doc));
 }
 
 int fluid_busy(const scene_entry_t *e) {
@@ -186,7 +289,6 @@ int fluid_submit_step(server_t *srv, scene_entry_t *e, unsigned steps, double dt
     if (!e->fluid)
       return -1;
     e->fluid->entry = e;
-    e->fluid->set_gen = 1;
   }
   fluid_job_t *fj = calloc(1, sizeof *fj);
   if (!fj)
@@ -195,9 +297,10 @@ int fluid_submit_step(server_t *srv, scene_entry_t *e, unsigned steps, double dt
   fj->call = call;
   fj->in = particles_ref(e->scene->particles);
   params_of(e->scene->doc, &fj->params);
+  fj->emit_max = emit_cap(e->scene->doc, srv->cfg.limits.particles);
   fj->steps = steps;
   fj->dt = dt;
-  fj->gen = e->fluid->set_gen;
+  fj->gen = e->scene->particles_epoch;
   fj->time = scene_time(e->scene);
   fj->frame = scene_frame(e->scene);
   fj->job.scene = render_scene_ref(e->scene->snapshot);
@@ -349,8 +452,7 @@ static void set_particles_m(call_t *call) {
     call_error(call, PROTO_E_INTERNAL, NULL, "internal error: out of memory");
     goto out;
   }
-  if (e->fluid)
-    e->fluid->set_gen++; /* Step jobs in flight now step stale particles: dropped. */
+  e->scene->particles_epoch++; /* Step jobs in flight now step stale particles: dropped. */
   cJSON *r = cJSON_CreateObject();
   cJSON_AddNumberToObject(r, "count", n);
   call_result(call, r);

@@ -586,13 +586,32 @@ static tone_map_t tone_map_of(const char *s) {
   return TONE_ACES;
 }
 
-/* Builds the snapshot of a validated document, loading meshes; NULL with 'err' set. */
+/* The lattice spacing of a block of 'initial': its own, or h/2. */
+static double block_spacing(const cJSON *fluid, const cJSON *blk) {
+  double sp = get(blk, "spacing")->valuedouble;
+  return sp > 0 ? sp : 0.5 * get(fluid, "h")->valuedouble;
+}
+
+/* The lattice indices (x, y, z) of the particle 'i' of a block of layers nx × nz. */
+static void block_index(uint64_t i, uint64_t nx, uint64_t nz, uint64_t idx[3]) {
+  idx[0] = i % nx;
+  idx[2] = i / nx % nz;
+  idx[1] = i / (nx * nz);
+}
+
+static int inside(const double v[3], const double lo[3], const double hi[3]) {
+  for (int i = 0; i < 3; i++)
+    if (!(v[i] >= lo[i] && v[i] <= hi[i]))
+      return 0;
+  return 1;
+}
+
 /*
- * The fluid's checks across fields: the tank is not empty, and writes the real particle count
- * into fluid.count (read-only to clients).
+ * The fluid's checks across fields: the tank is not empty, every emitter's centre and every
+ * particle of the starting blocks lies inside it, and the blocks hold at most max_particles.
  */
-static int check_fluid(cJSON *doc, const particles_t *p, scene_error_t *err) {
-  cJSON *fluid = get(doc, "fluid");
+static int check_fluid(const cJSON *doc, scene_error_t *err) {
+  const cJSON *fluid = get(doc, "fluid");
   const cJSON *b = get(fluid, "bounds");
   double lo[3], hi[3];
   vec3d(get(b, "min"), lo);
@@ -601,7 +620,159 @@ static int check_fluid(cJSON *doc, const particles_t *p, scene_error_t *err) {
     if (!(lo[i] < hi[i]))
       return set_err(err, PROTO_E_INVALID_PARAMS, "fluid.bounds.max",
                      "fluid.bounds.max: must be above fluid.bounds.min on every axis");
-  cJSON_SetNumberValue(get(fluid, "count"), (p ? (double)p->count : 0));
+  char p[64];
+  int k = 0;
+  for (const cJSON *em = get(fluid, "emitters")->child; em; em = em->next, k++) {
+    double c[3];
+    vec3d(get(em, "position"), c);
+    if (!inside(c, lo, hi)) {
+      snprintf(p, sizeof p, "fluid.emitters.%d.position", k);
+      return set_err(err, PROTO_E_INVALID_PARAMS, p, "%s: must lie inside fluid.bounds", p);
+    }
+  }
+  double total = 0, cap = get(fluid, "max_particles")->valuedouble;
+  k = 0;
+  for (const cJSON *blk = get(fluid, "initial")->child; blk; blk = blk->next, k++) {
+    double o[3], top[3], sp = block_spacing(fluid, blk);
+    vec3d(get(blk, "origin"), o);
+    if (!inside(o, lo, hi)) {
+      snprintf(p, sizeof p, "fluid.initial.%d.origin", k);
+      return set_err(err, PROTO_E_INVALID_PARAMS, p, "%s: must lie inside fluid.bounds", p);
+    }
+    uint64_t n = (uint64_t)get(blk, "count")->valuedouble;
+    uint64_t nx = (uint64_t)get(blk, "nx")->valuedouble, nz = (uint64_t)get(blk, "nz")->valuedouble;
+    /* The far corner: the full rows and layers below the last particle reach their ends. */
+    uint64_t far[3] = {n < nx ? n - 1 : nx - 1, (n - 1) / (nx * nz),
+                       (n + nx - 1) / nx < nz ? (n + nx - 1) / nx - 1 : nz - 1};
+    for (int i = 0; i < 3; i++)
+      top[i] = o[i] + sp * (double)far[i];
+    if (!inside(top, lo, hi)) {
+      snprintf(p, sizeof p, "fluid.initial.%d.count", k);
+      return set_err(err, PROTO_E_INVALID_PARAMS, p,
+                     "%s: the block reaches (%g, %g, %g), outside fluid.bounds", p, top[0], top[1],
+                     top[2]);
+    }
+    total += (double)n;
+    if (total > cap) {
+      snprintf(p, sizeof p, "fluid.initial.%d.count", k);
+      return set_err(err, PROTO_E_INVALID_PARAMS, p,
+                     "%s: the blocks hold %.0f particles, more than fluid.max_particles (%.0f)", p,
+                     total, cap);
+    }
+  }
+  return 0;
+}
+
+/* An opaque object as the fluid collides with it (sim_fluid.h): a sphere (an ellipsoid when
+ * scaled), a box or a plane; 'kind' -1 for the shapes that do not collide. */
+typedef struct solid {
+  int kind; /* 0 sphere, 1 box, 2 plane, -1 none. */
+  double c[3], r[3][3], semi[3];
+} solid_t;
+
+static solid_t solid_of(const cJSON *o) {
+  solid_t b;
+  const char *shape = get(o, "shape")->valuestring;
+  b.kind = strcmp(shape, "sphere") == 0  ? 0
+           : strcmp(shape, "box") == 0   ? 1
+           : strcmp(shape, "plane") == 0 ? 2
+                                         : -1;
+  double rot[3], sc[3];
+  vec3d(get(o, "position"), b.c);
+  vec3d(get(o, "rotation"), rot);
+  vec3d(get(o, "scale"), sc);
+  /* R = Rz Ry Rx (X applied first), as the renderer and the simulation build it. */
+  double a = rot[0] * (M_PI / 180), bb = rot[1] * (M_PI / 180), cc = rot[2] * (M_PI / 180);
+  double ca = cos(a), sa = sin(a), cb = cos(bb), sb = sin(bb), cz = cos(cc), sz = sin(cc);
+  double r[3][3] = {{cz * cb, cz * sb * sa - sz * ca, cz * sb * ca + sz * sa},
+                    {sz * cb, sz * sb * sa + cz * ca, sz * sb * ca - cz * sa},
+                    {-sb, cb * sa, cb * ca}};
+  memcpy(b.r, r, sizeof r);
+  for (int i = 0; i < 3; i++)
+    b.semi[i] = 0.5 * fabs(sc[i]);
+  return b;
+}
+
+/* Whether point 'x' lies inside 'b', as the fluid's collision sees it. */
+static int solid_inside(const solid_t *b, const float x[3]) {
+  double d[3], q[3];
+  for (int i = 0; i < 3; i++)
+    d[i] = (double)x[i] - b->c[i];
+  for (int j = 0; j < 3; j++) /* q = R^T d: the point in object space. */
+    q[j] = b->r[0][j] * d[0] + b->r[1][j] * d[1] + b->r[2][j] * d[2];
+  if (b->kind == 0) {
+    double u = 0;
+    for (int i = 0; i < 3; i++)
+      u += (q[i] / b->semi[i]) * (q[i] / b->semi[i]);
+    return u < 1;
+  }
+  if (b->kind == 1)
+    return fabs(q[0]) < b->semi[0] && fabs(q[1]) < b->semi[1] && fabs(q[2]) < b->semi[2];
+  return b->kind == 2 && q[1] < 0;
+}
+
+/*
+ * The particles of fluid.initial in a checked document, in 'out' (NULL when there are none):
+ * each block's lattice, less the points inside an opaque object the fluid collides with
+ * (which would burst out of it). Returns 0, or -1 on OOM.
+ */
+static int seed_particles(const cJSON *doc, particles_t **out) {
+  const cJSON *fluid = get(doc, "fluid");
+  const cJSON *blocks = get(fluid, "initial");
+  uint64_t total = 0;
+  for (const cJSON *blk = blocks->child; blk; blk = blk->next)
+    total += (uint64_t)get(blk, "count")->valuedouble;
+  *out = NULL;
+  if (total == 0)
+    return 0;
+  particles_t *p = particles_new((uint32_t)total);
+  if (!p)
+    return -1;
+  float lo[3], hi[3];
+  vec3f(get(get(fluid, "bounds"), "min"), lo);
+  vec3f(get(get(fluid, "bounds"), "max"), hi);
+  int nsolid = 0;
+  solid_t *solids = malloc(((size_t)cJSON_GetArraySize(get(doc, "objects")) + 1) * sizeof *solids);
+  if (!solids) {
+    particles_unref(p);
+    return -1;
+  }
+  for (const cJSON *o = get(doc, "objects")->child; o; o = o->next) {
+    solids[nsolid] = solid_of(o);
+    if (solids[nsolid].kind >= 0 && nsolid < 256) /* The simulation's first 256 colliders. */
+      nsolid++;
+  }
+  size_t at = 0;
+  for (const cJSON *blk = blocks->child; blk; blk = blk->next) {
+    double o[3], sp = block_spacing(fluid, blk);
+    float v[3];
+    vec3d(get(blk, "origin"), o);
+    vec3f(get(blk, "velocity"), v);
+    uint64_t n = (uint64_t)get(blk, "count")->valuedouble;
+    uint64_t nx = (uint64_t)get(blk, "nx")->valuedouble, nz = (uint64_t)get(blk, "nz")->valuedouble;
+    for (uint64_t i = 0; i < n; i++) {
+      uint64_t idx[3];
+      block_index(i, nx, nz, idx);
+      float *x = p->pos + 3 * at;
+      for (int c = 0; c < 3; c++) {
+        /* Checked in double; the clamp only absorbs the rounding to float at the walls. */
+        x[c] = fminf(fmaxf((float)(o[c] + sp * (double)idx[c]), lo[c]), hi[c]);
+        p->vel[3 * at + c] = v[c];
+      }
+      int hidden = 0;
+      for (int k = 0; k < nsolid && !hidden; k++)
+        hidden = solid_inside(&solids[k], x);
+      if (!hidden)
+        at++;
+    }
+  }
+  free(solids);
+  if (at == 0) {
+    particles_unref(p);
+    return 0;
+  }
+  p->count = (uint32_t)at;
+  *out = p;
   return 0;
 }
 
@@ -623,6 +794,7 @@ static void compile_fluid(const cJSON *doc, particles_t *p, render_scene_t *rs) 
   rs->fluid.roughness = (float)get(mat, "roughness")->valuedouble;
 }
 
+/* Builds the snapshot of a validated document, loading meshes; NULL with 'err' set. */
 static render_scene_t *compile(const cJSON *doc, particles_t *particles, scene_error_t *err) {
   render_scene_t *rs = calloc(1, sizeof *rs);
   if (!rs) {
@@ -703,44 +875,66 @@ static render_scene_t *compile(const cJSON *doc, particles_t *particles, scene_e
 }
 
 /*
- * Validates 'doc' in place (defaults, normalisation), checks it across fields, sets each
+ * Validates 'doc' in place (defaults, normalisation), checks it across fields and sets each
  * keyframed wave field to its value at the document's sim.time (keyframes own their field: a
- * value written there is replaced) and compiles it. Returns the new snapshot, or NULL with
- * 'err' set.
+ * value written there is replaced). Returns 0, or -1 with 'err' set.
  */
-static render_scene_t *prepare(cJSON *doc, particles_t *particles, scene_error_t *err) {
+static int prepare(cJSON *doc, scene_error_t *err) {
   sch_error_t se;
-  if (sch_validate(&scene_schema, doc, "", &se) != 0) {
-    set_err(err, PROTO_E_INVALID_PARAMS, se.path, "%s", se.message);
-    return NULL;
-  }
+  if (sch_validate(&scene_schema, doc, "", &se) != 0)
+    return set_err(err, PROTO_E_INVALID_PARAMS, se.path, "%s", se.message);
   if (check_cross(doc, err) != 0 || check_waves(doc, err) != 0 || check_volumes(doc, err) != 0 ||
-      check_fluid(doc, particles, err) != 0)
-    return NULL;
+      check_fluid(doc, err) != 0)
+    return -1;
   double now = get(get(doc, "sim"), "time")->valuedouble;
   const sch_field_t *wf = wave_fields();
   for (cJSON *w = get(doc, "waves")->child; w; w = w->next)
     anim_apply_keys(w, wf, now);
-  return compile(doc, particles, err);
+  return 0;
 }
 
-/* Makes 'doc' (owned, taken in every case) the scene's document if it is valid. */
+/*
+ * Makes 'doc' (owned, taken in every case) the scene's document if it is valid. A new value of
+ * fluid.initial (or the first document) replaces the particles by its blocks.
+ */
 static int commit(scene_t *s, cJSON *doc, scene_error_t *err) {
-  render_scene_t *rs = prepare(doc, s->particles, err);
-  if (!rs) {
-    cJSON_Delete(doc);
-    cache_prune();
-    grid_cache_prune();
-    return -1;
+  particles_t *particles = s->particles;
+  int reseed = 0;
+  render_scene_t *rs = NULL;
+  if (prepare(doc, err) != 0)
+    goto fail;
+  const cJSON *init = get(get(doc, "fluid"), "initial");
+  if (!s->doc || !cJSON_Compare(init, get(get(s->doc, "fluid"), "initial"), 1)) {
+    if (seed_particles(doc, &particles) != 0) {
+      set_err(err, PROTO_E_INTERNAL, "", "out of memory");
+      goto fail;
+    }
+    reseed = 1;
   }
+  cJSON_SetNumberValue(get(get(doc, "fluid"), "count"), (particles ? (double)particles->count : 0));
+  rs = compile(doc, particles, err);
+  if (!rs)
+    goto fail;
   cJSON_Delete(s->doc);
   s->doc = doc;
   render_scene_unref(s->snapshot);
   s->snapshot = rs;
   s->version++;
+  if (reseed) {
+    particles_unref(s->particles);
+    s->particles = particles;
+    s->particles_epoch++;
+  }
   cache_prune();
   grid_cache_prune();
   return 0;
+fail:
+  if (reseed)
+    particles_unref(particles);
+  cJSON_Delete(doc);
+  cache_prune();
+  grid_cache_prune();
+  return -1;
 }
 
 /* ---- Public API ---- */

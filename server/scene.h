@@ -8,6 +8,7 @@
 #define VOLFX_SCENE_H
 
 #include <cjson/cJSON.h>
+#include <stdint.h>
 
 #include "render_scene.h"
 #include "schema.h"
@@ -18,6 +19,9 @@ typedef struct scene {
   render_scene_t *snapshot; /* Compiled from 'doc'; replaced on every change. */
   unsigned long version;    /* Incremented on every change. */
   particles_t *particles;   /* The fluid's particles (a reference), NULL for none. */
+  uint64_t particles_epoch; /* From 1; counts replacements of the particles from outside the
+                               simulation (fluid.initial, fluid.set_particles): a fluid step
+                               started in an earlier epoch is dropped. */
 } scene_t;
 
 typedef struct scene_error {

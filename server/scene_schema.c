@@ -438,6 +438,124 @@ static const sch_field_t fluid_material_fields[] = {
     {0},
 };
 
+/* Emitters (sim_fluid.h: FLUID_MAX_EMITTERS) and the most particles a scene's own fields can
+ * make: SPEC §3's default limits.particles, so that a document cannot ask for more memory than
+ * fluid.set_particles could fill. */
+#define FLUID_EMITTERS 16
+#define FLUID_PARTICLES (1 << 20)
+static const char *const emit_shapes[] = {"sphere", "box", NULL};
+static const double emit_size[3] = {0.5, 0.5, 0.5};
+
+static const sch_field_t fluid_emitter_fields[] = {
+    {.name = "shape",
+     .type = SCH_ENUM,
+     .desc = "Region new particles appear in, uniformly at random: a ball of radius 'radius' or "
+             "a box of edges 'size', centred on position.",
+     .enum_values = emit_shapes,
+     .def_str = "sphere"},
+    {.name = "position",
+     .type = SCH_VEC3,
+     .desc = "Centre of the emitter; must lie inside fluid.bounds (particles falling outside "
+             "them are moved onto the nearest wall).",
+     .unit = "world units",
+     .min = -WORLD,
+     .max = WORLD,
+     .def_vec = v_zero},
+    {.name = "radius",
+     .type = SCH_NUMBER,
+     .desc = "Radius of a sphere emitter.",
+     .unit = "world units",
+     .min = 0,
+     .max = WORLD,
+     .def = 0.25},
+    {.name = "size",
+     .type = SCH_VEC3,
+     .desc = "Edge lengths of a box emitter along x, y and z.",
+     .unit = "world units",
+     .min = 0,
+     .max = WORLD,
+     .def_vec = emit_size},
+    {.name = "rate",
+     .type = SCH_NUMBER,
+     .desc = "Particles added per second of simulated time (fractions carry over between "
+             "steps); emitting stops while the fluid holds max_particles. About |velocity| × "
+             "the emitter's cross-section / (h/2)^3 keeps a stream at rest density; much more "
+             "and the new particles burst apart.",
+     .unit = "particles/second",
+     .min = 0,
+     .max = 1e7,
+     .def = 200},
+    {.name = "velocity",
+     .type = SCH_VEC3,
+     .desc = "Velocity every new particle starts with.",
+     .unit = "m/s",
+     .min = -1000,
+     .max = 1000,
+     .def_vec = v_zero},
+    {0},
+};
+
+static const sch_field_t fluid_emitter_item = {
+    .name = "emitter",
+    .type = SCH_OBJECT,
+    .desc = "A source of new particles while the fluid is simulated (sim.step, sim.play).",
+    .fields = fluid_emitter_fields,
+};
+
+static const sch_field_t fluid_block_fields[] = {
+    {.name = "origin",
+     .type = SCH_VEC3,
+     .desc = "Centre of the block's first particle: its lowest x, y and z.",
+     .unit = "world units",
+     .min = -WORLD,
+     .max = WORLD,
+     .def_vec = v_zero},
+    {.name = "spacing",
+     .type = SCH_NUMBER,
+     .desc = "Distance between neighbouring particles of the cubic lattice; 0 takes h/2, the "
+             "spacing at which the default particle_mass has rest_density.",
+     .unit = "world units",
+     .min = 0,
+     .max = WORLD},
+    {.name = "nx",
+     .type = SCH_INTEGER,
+     .desc = "Particles along x in each layer.",
+     .min = 1,
+     .max = 65536,
+     .def = 24},
+    {.name = "nz",
+     .type = SCH_INTEGER,
+     .desc = "Particles along z in each layer; layers of nx × nz stack upwards (+y), the last "
+             "one partly filled (x fastest, then z), until the block holds count.",
+     .min = 1,
+     .max = 65536,
+     .def = 24},
+    {.name = "count",
+     .type = SCH_INTEGER,
+     .desc = "Lattice points in the block; every one must lie inside fluid.bounds. Points "
+             "inside a sphere, box or plane of 'objects' (the fluid's colliders) are left out, "
+             "so fluid.count may be smaller.",
+     .min = 1,
+     .max = FLUID_PARTICLES,
+     .flags = SCH_REQUIRED},
+    {.name = "velocity",
+     .type = SCH_VEC3,
+     .desc = "Velocity every particle of the block starts with.",
+     .unit = "m/s",
+     .min = -1000,
+     .max = 1000,
+     .def_vec = v_zero},
+    {0},
+};
+
+static const sch_field_t fluid_block_item = {
+    .name = "block",
+    .type = SCH_OBJECT,
+    .desc = "A block of particles on a cubic lattice, stacked in layers of nx × nz (the paper's "
+            "Table 1 set-up is 24 × 24 layers of spacing h/2).",
+    .fields = fluid_block_fields,
+};
+
 static const sch_field_t fluid_fields[] = {
     {.name = "enabled",
      .type = SCH_BOOL,
@@ -501,9 +619,29 @@ static const sch_field_t fluid_fields[] = {
      .type = SCH_OBJECT,
      .desc = "How the liquid surface is shaded.",
      .fields = fluid_material_fields},
+    {.name = "emitters",
+     .type = SCH_ARRAY,
+     .desc = "Sources that add particles while the fluid is simulated.",
+     .max = FLUID_EMITTERS,
+     .items = &fluid_emitter_item},
+    {.name = "initial",
+     .type = SCH_ARRAY,
+     .desc = "Blocks of particles the fluid starts with: when the scene is created and whenever "
+             "this field's value changes, every particle is replaced by these blocks (an empty "
+             "array removes them); fluid.set_particles replaces them again.",
+     .max = 16,
+     .items = &fluid_block_item},
+    {.name = "max_particles",
+     .type = SCH_INTEGER,
+     .desc = "Most particles the emitters fill the fluid to (limits.particles caps it too); "
+             "the blocks of 'initial' together may not hold more.",
+     .min = 1,
+     .max = FLUID_PARTICLES,
+     .def = 65536},
     {.name = "count",
      .type = SCH_INTEGER,
-     .desc = "READ-ONLY: the number of particles (set through fluid.set_particles); any value "
+     .desc = "READ-ONLY: the number of particles (from initial, the emitters or "
+             "fluid.set_particles); any value "
              "written here is replaced by the real count.",
      .min = 0,
      .max = 1 << 26},

@@ -2,8 +2,10 @@
 """
 The particle fluid against a real volfxd: fluid.set_particles / fluid.get_particles round-trip
 bit-exact, sim.step moves the particles under gravity inside the bounds, the renderer draws
-them (beauty and depth), bad inputs are refused with data.path and nothing changed, and a
-scene with a live fluid can be deleted and the server shut down cleanly.
+them (beauty and depth), fluid.initial seeds the paper's Table 1 lattice, emitters fill the
+fluid over sim.step and sim.play up to fluid.max_particles (deterministically), bad inputs,
+emitters and blocks are refused with data.path and nothing changed, and a scene with a live
+fluid can be deleted and the server shut down cleanly.
 
     python3 tests/integration/test_fluid.py --bin build/bin
 """
@@ -173,6 +175,235 @@ def bad_inputs(s):
             "refused inputs left the particles unchanged")
     s.eq(c.ok("scene.get", {"scene": "bad"})[0], doc, "refused inputs left the document unchanged")
     c.ok("scene.delete", {"name": "bad"})
+
+
+def table1_layers(n, origin, spacing, nx=24, nz=24):
+    """The paper's Table 1 set-up as fluid.initial describes it: layers of nx x nz, x fastest,
+    then z, stacked upwards until n particles (float32 as the server rounds them)."""
+    pts = []
+    for i in range(n):
+        ix, iz, iy = i % nx, i // nx % nz, i // (nx * nz)
+        pts.append(tuple(struct.unpack("<f", struct.pack("<f", origin[c] + spacing * k))[0]
+                         for c, k in enumerate((ix, iy, iz))))
+    return pts
+
+
+@T
+def initial_blocks(s):
+    c = s.srv.connect()
+    fresh(c, "ini")
+    origin = [-3.5, -4.8, -3.5]
+    c.ok("scene.set", {"scene": "ini", "path": "fluid.initial",
+                       "value": [{"origin": origin, "count": 4096}]})
+    s.eq(c.ok("scene.get", {"scene": "ini", "path": "fluid.count"})[0], 4096,
+         "fluid.initial gives 4096 particles")
+    r, att = c.ok("fluid.get_particles", {"scene": "ini"})
+    got = unpack(att)
+    want = table1_layers(4096, origin, H / 2)
+    s.eq(len(got), 4096, "get_particles returns the block")
+    s.check(got == want, "24x24 layers of spacing h/2 stacked to 4096, x fastest, then z, then y",
+            "first %s, last %s" % (got[:1], got[-1:]))
+    top = max(p[1] for p in got)
+    s.check(abs(top - (origin[1] + 7 * H / 2)) < 1e-5, "7 full layers and a partial eighth",
+            "top layer at y = %g" % top)
+
+    # Unrelated edits keep the particles; set_particles replaces them; only a new value of
+    # fluid.initial seeds again.
+    c.ok("fluid.set_particles", {"scene": "ini", "positions": b64(block(4))})
+    c.ok("scene.set", {"scene": "ini", "path": "fluid.viscosity", "value": 20})
+    s.eq(c.ok("scene.get", {"scene": "ini", "path": "fluid.count"})[0], 64,
+         "editing another field keeps set_particles' particles")
+    c.ok("scene.set", {"scene": "ini", "path": "fluid.initial.0.count", "value": 100})
+    r, att = c.ok("fluid.get_particles", {"scene": "ini"})
+    s.check(unpack(att) == want[:100], "a changed fluid.initial seeds the particles again")
+    # A second block after the first, with its own spacing, nx, nz and velocity.
+    blocks = [{"origin": origin, "count": 100},
+              {"origin": [1, 0, 1], "spacing": 0.2, "nx": 3, "nz": 2, "count": 7,
+               "velocity": [0, 1.5, 0]}]
+    c.ok("scene.set", {"scene": "ini", "path": "fluid.initial", "value": blocks})
+    r, att = c.ok("fluid.get_particles", {"scene": "ini"})
+    got = unpack(att)
+    s.eq(len(got), 107, "two blocks")
+    s.check(got[100:] == table1_layers(7, [1, 0, 1], 0.2, 3, 2), "the second block's lattice",
+            str(got[100:]))
+    _, vatt = c.ok("fluid.get_particles", {"scene": "ini", "field": "velocities"})
+    vel = unpack(vatt)
+    s.check(vel[:100] == [(0, 0, 0)] * 100 and vel[100:] == [(0, 1.5, 0)] * 7,
+            "each block's velocity")
+    # Lattice points inside the fluid's colliders are left out: a sphere of radius 0.5 at the
+    # centre of a 10 x 10 x 10 block, a box in one corner, and a plane below y = -1.
+    c.ok("scene.set", {"scene": "ini", "patch": {
+        "objects": [{"shape": "sphere", "position": [0, 0, 0]},
+                    {"shape": "box", "position": [1.3, 1.3, 1.3], "rotation": [0, 45, 0]},
+                    {"shape": "plane", "position": [0, -1.01, 0]},
+                    {"shape": "tetrahedron", "position": [-1.3, 1.3, 1.3]}],
+        "fluid": {"initial": [{"origin": [-1.35, -1.35, -1.35], "spacing": 0.3, "nx": 10,
+                               "nz": 10, "count": 1000}]}}})
+    _, att = c.ok("fluid.get_particles", {"scene": "ini"})
+    got = unpack(att)
+    lattice = table1_layers(1000, [-1.35] * 3, 0.3, 10, 10)
+    co, sn = math.cos(math.radians(45)), math.sin(math.radians(45))
+
+    def in_box(p):
+        d = [p[k] - 1.3 for k in range(3)]
+        q = (co * d[0] - sn * d[2], d[1], sn * d[0] + co * d[2])  # R_y(45)^T d
+        return all(abs(v) < 0.5 for v in q)
+
+    want = [p for p in lattice
+            if math.dist(p, (0, 0, 0)) >= 0.5 and not in_box(p) and p[1] >= -1.01]
+    s.check(len(want) < 1000 - 100, "the objects cover lattice points", str(len(want)))
+    s.eq(len(got), len(want), "points inside the sphere, box and plane are left out")
+    s.check(got == want, "the rest of the lattice, in order")
+    s.eq(c.ok("scene.get", {"scene": "ini", "path": "fluid.count"})[0], len(want),
+         "fluid.count counts what is left")
+    c.ok("scene.set", {"scene": "ini", "patch": {"objects": [], "fluid": {"initial": blocks}}})
+
+    # Simulated and rendered like any particles.
+    c.ok("scene.set", {"scene": "ini", "path": "fluid.enabled", "value": True})
+    c.ok("sim.step", {"scene": "ini", "steps": 3}, timeout=120)
+    s.eq(c.ok("scene.get", {"scene": "ini", "path": "fluid.count"})[0], 107,
+         "a stepped block keeps its count")
+    c.ok("scene.set", {"scene": "ini", "path": "fluid.initial", "value": []})
+    s.eq(c.ok("scene.get", {"scene": "ini", "path": "fluid.count"})[0], 0,
+         "an empty fluid.initial removes the particles")
+    c.ok("scene.delete", {"name": "ini"})
+
+
+@T
+def emitters_fill(s):
+    c = s.srv.connect()
+    em = {"shape": "sphere", "position": [0, 3, 0], "radius": 0.3, "rate": 600,
+          "velocity": [0, -2, 0]}
+    # 10 particles a step: the step that reaches 255 adds 5 too many, which go.
+    patch = {"fluid": {"enabled": True, "emitters": [em], "max_particles": 255}}
+    for name in ("em", "em2"):
+        fresh(c, name)
+        c.ok("scene.set", {"scene": name, "patch": patch})
+    doc = c.ok("scene.get", {"scene": "em", "path": "fluid.emitters"})[0]
+    s.eq(doc, [dict(em, size=[0.5, 0.5, 0.5])], "an emitter gets its defaults filled in")
+    s.eq(c.ok("scene.get", {"scene": "em", "path": "fluid.count"})[0], 0, "no particles yet")
+    r, _ = c.ok("sim.step", {"scene": "em", "steps": 6}, timeout=120)
+    s.eq(r.get("frame"), 6, "sim.step answers once the emitter ran")
+    # 600 particles/s for 6/60 s: 60 particles.
+    s.eq(c.ok("scene.get", {"scene": "em", "path": "fluid.count"})[0], 60,
+         "the emitter adds rate x time particles")
+    r, att = c.ok("fluid.get_particles", {"scene": "em"})
+    got = unpack(att)
+    s.eq(r.get("count"), 60, "fluid.get_particles sees the emitted particles")
+    s.check(all(math.isfinite(v) for p in got for v in p), "emitted positions finite")
+    # Born within 0.3 of (0, 3, 0), faster than rest density allows, so they spread; their
+    # centre still falls from there at 2 m/s and more for at most 0.1 s.
+    mid = [sum(p[k] for p in got) / len(got) for k in range(3)]
+    s.check(abs(mid[0]) < 0.3 and abs(mid[2]) < 0.3 and 2.6 < mid[1] < 3.05,
+            "emitted where the emitter is", "centre %s" % mid)
+    _, vatt = c.ok("fluid.get_particles", {"scene": "em", "field": "velocities"})
+    s.check(sum(v[1] for v in unpack(vatt)) / 60 < -1.5, "emitted moving down")
+    # Filling stops at max_particles; the tank keeps them.
+    c.ok("sim.step", {"scene": "em", "steps": 40}, timeout=120)
+    r, att = c.ok("fluid.get_particles", {"scene": "em"})
+    s.eq(r.get("count"), 255, "the emitter stops at fluid.max_particles")
+    got = unpack(att)
+    s.check(all(-5 <= v <= 5 and math.isfinite(v) for p in got for v in p),
+            "emitted particles stay inside the bounds")
+    # The same seed and steps give the same particles, bit for bit.
+    c.ok("sim.step", {"scene": "em2", "steps": 6}, timeout=120)
+    c.ok("sim.step", {"scene": "em2", "steps": 40}, timeout=120)
+    s.check(c.ok("fluid.get_particles", {"scene": "em2"})[1] == att,
+            "emitting is deterministic for a seed")
+    # sim.play emits too.
+    fresh(c, "em3")
+    c.ok("scene.set", {"scene": "em3", "patch": patch})
+    c.ok("sim.play", {"scene": "em3", "rate": 60})
+    time.sleep(0.6)
+    c.ok("sim.pause", {"scene": "em3"})
+    time.sleep(0.3)
+    n = c.ok("scene.get", {"scene": "em3", "path": "fluid.count"})[0]
+    s.check(n > 0, "sim.play runs the emitters", "count %s" % n)
+    for name in ("em", "em2", "em3"):
+        c.ok("scene.delete", {"name": name})
+
+
+@T
+def bad_emitters_and_blocks(s):
+    c = s.srv.connect()
+    fresh(c, "bade")
+    c.ok("scene.set", {"scene": "bade", "patch": {"fluid": {
+        "emitters": [{"position": [0, 2, 0]}],
+        "initial": [{"origin": [-1, -1, -1], "nx": 5, "nz": 5, "count": 50}]}}})
+    c.ok("fluid.set_particles", {"scene": "bade", "positions": b64(block(3))})
+    before = c.ok("fluid.get_particles", {"scene": "bade"})[1]
+    doc = c.ok("scene.get", {"scene": "bade"})[0]
+    em = {"position": [0, 0, 0]}
+    cases = [
+        ({"emitters": [dict(em, position=[0, 5.5, 0])]}, "fluid.emitters.0.position",
+         "emitter outside the bounds"),
+        ({"emitters": [em, dict(em, shape="cone")]}, "fluid.emitters.1.shape", "unknown shape"),
+        ({"emitters": [dict(em, rate=-1)]}, "fluid.emitters.0.rate", "negative rate"),
+        (None, None, "infinite radius"),
+        ({"emitters": [dict(em, size=[1, 1])]}, "fluid.emitters.0.size", "size of two numbers"),
+        ({"emitters": [dict(em, velocity=[0, 1e6, 0])]}, "fluid.emitters.0.velocity.1",
+         "velocity out of range"),
+        ({"emitters": [dict(em, colour=1)]}, "fluid.emitters.0.colour", "unknown member"),
+        ({"emitters": [em] * 17}, "fluid.emitters", "17 emitters"),
+        ({"emitters": {"position": [0, 0, 0]}}, "fluid.emitters", "not an array"),
+        ({"initial": [{"origin": [0, 0, 0]}]}, "fluid.initial.0.count", "block without count"),
+        ({"initial": [{"origin": [0, 0, 0], "count": 0}]}, "fluid.initial.0.count",
+         "block of 0 particles"),
+        ({"initial": [{"origin": [0, 0, 0], "count": 2.5}]}, "fluid.initial.0.count",
+         "fractional count"),
+        ({"initial": [{"origin": [0, -6, 0], "count": 1}]}, "fluid.initial.0.origin",
+         "block starting outside"),
+        ({"initial": [{"origin": [0, 0, 0], "count": 100000}]}, "fluid.initial.0.count",
+         "block reaching past the tank's top"),
+        ({"initial": [{"origin": [4.9, 0, 0], "count": 2}]}, "fluid.initial.0.count",
+         "block reaching past x max"),
+        ({"max_particles": 10}, "fluid.initial.0.count", "blocks over max_particles"),
+        ({"max_particles": 0}, "fluid.max_particles", "max_particles 0"),
+    ]
+    for patch, path, what in cases:
+        if patch is None:
+            # JSON has no infinity: a literal too large for a double reads as one.
+            expect_error(s, c, "scene.set", None, E_PARAMS, "fluid.emitters.0.radius", what,
+                         raw=(b'{"jsonrpc":"2.0","id":1,"method":"scene.set","params":'
+                              b'{"scene":"bade","patch":{"fluid":{"emitters":[{"radius":1e999}]'
+                              b'}}}}\n'))
+            continue
+        expect_error(s, c, "scene.set", {"scene": "bade", "patch": {"fluid": patch}}, E_PARAMS,
+                     path, what)
+    s.check(c.ok("fluid.get_particles", {"scene": "bade"})[1] == before,
+            "refused emitters and blocks left the particles unchanged")
+    s.eq(c.ok("scene.get", {"scene": "bade"})[0], doc,
+         "refused emitters and blocks left the document unchanged")
+    c.ok("scene.delete", {"name": "bade"})
+
+
+@T
+def presets(s):
+    """The paper's presets and the demo seed their particles from fluid.initial."""
+    c = s.srv.connect()
+    for preset, n in (("paper-001", 4096), ("paper-001-16384", 16384),
+                      ("paper-001-65536", 65536), ("paper-001-flow", 4096),
+                      ("paper-001-flow-16384", 16384)):
+        c.ok("scene.create", {"name": preset, "preset": preset})
+        f = c.ok("scene.get", {"scene": preset, "path": "fluid"})[0]
+        s.eq(f.get("count"), n, "%s holds %d particles" % (preset, n))
+        s.check(f.get("enabled") is True and f.get("h") == H and f.get("threshold") == 0.765625,
+                "%s: an enabled fluid with the paper's h and T" % preset)
+        if not preset.startswith("paper-001-flow"):
+            blk = f["initial"][0]
+            s.eq((blk["nx"], blk["nz"], blk["spacing"]), (24, 24, 0.305),
+                 "%s: layers of 24 x 24 at spacing h/2" % preset)
+        c.ok("scene.delete", {"name": preset})
+    c.ok("scene.create", {"name": "dm", "preset": "demo"})
+    f = c.ok("scene.get", {"scene": "dm", "path": "fluid"})[0]
+    s.check(f.get("enabled") is True and f.get("count", 0) > 100, "the demo has a pool of water",
+            "count %s" % f.get("count"))
+    r, _ = c.ok("sim.step", {"scene": "dm", "steps": 5}, timeout=120)
+    _, att = c.ok("fluid.get_particles", {"scene": "dm"})
+    lo, hi = f["bounds"]["min"], f["bounds"]["max"]
+    s.check(all(math.isfinite(p[k]) and lo[k] <= p[k] <= hi[k] for p in unpack(att)
+                for k in range(3)), "the demo's pool stays in its basin")
+    c.ok("scene.delete", {"name": "dm"})
 
 
 @T
