@@ -1,0 +1,450 @@
+/*
+ * The cloud automaton and its density (sim_cloud.h). A step reads each word of act with its
+ * neighbours: the x neighbours are the word shifted by one or two bits, with the bits carried
+ * over from the words beside it; the y and z neighbours are the same word of the rows beside
+ * it (a zero row outside the grid). So a step costs about twenty word operations per 64 cells.
+ * The random draws of the Dobashi rules hash (seed, step, draw, cell), so the result does not
+ * depend on the packing, and rows outside every ellipsoid of the supply are skipped.
+ *
+ * The density is the sum of a separable truncated Gaussian around every cloud cell, computed
+ * plane by plane: the x pass adds the kernel at every set bit of a row, the y pass adds each
+ * non-empty row of that into the rows within reach, and the z pass adds the plane into the
+ * planes within reach of the output. Every inner loop is a contiguous a × x + y, which the
+ * compiler vectorises (this file is built with -O3; see server/CMakeLists.txt).
+ */
+#include "sim_cloud.h"
+
+#include <math.h>
+#include <stdlib.h>
+#include <string.h>
+
+#define GOLDEN 0x9E3779B1u
+
+cloud_cells_t *cloud_cells_new(const uint32_t n[3]) {
+  for (int i = 0; i < 3; i++)
+    if (n[i] < 1 || n[i] > CLOUD_MAX_SIDE)
+      return NULL;
+  cloud_cells_t *c = calloc(1, sizeof *c);
+  if (!c)
+    return NULL;
+  atomic_init(&c->refs, 1);
+  memcpy(c->n, n, sizeof c->n);
+  c->words = (n[0] + 63) / 64;
+  size_t nw = (size_t)c->words * n[1] * n[2];
+  c->hum = calloc(3 * nw, sizeof *c->hum);
+  if (!c->hum) {
+    free(c);
+    return NULL;
+  }
+  c->act = c->hum + nw;
+  c->cld = c->act + nw;
+  return c;
+}
+
+static size_t plane_words(const cloud_cells_t *c) {
+  return (size_t)c->words * c->n[1] * c->n[2];
+}
+
+cloud_cells_t *cloud_cells_copy(const cloud_cells_t *c) {
+  cloud_cells_t *d = cloud_cells_new(c->n);
+  if (!d)
+    return NULL;
+  memcpy(d->hum, c->hum, 3 * plane_words(c) * sizeof *c->hum);
+  d->step = c->step;
+  return d;
+}
+
+cloud_cells_t *cloud_cells_ref(cloud_cells_t *c) {
+  if (c)
+    atomic_fetch_add(&c->refs, 1);
+  return c;
+}
+
+void cloud_cells_unref(cloud_cells_t *c) {
+  if (c && atomic_fetch_sub(&c->refs, 1) == 1) {
+    free(c->hum);
+    free(c);
+  }
+}
+
+size_t cloud_cells_count(const cloud_cells_t *c) {
+  return (size_t)c->n[0] * c->n[1] * c->n[2];
+}
+
+uint64_t *cloud_cells_plane(const cloud_cells_t *c, cloud_field_t f) {
+  return f == CLOUD_HUM ? c->hum : f == CLOUD_ACT ? c->act : c->cld;
+}
+
+int cloud_cell(const cloud_cells_t *c, cloud_field_t f, uint32_t x, uint32_t y, uint32_t z) {
+  const uint64_t *row = cloud_cells_plane(c, f) + ((size_t)z * c->n[1] + y) * c->words;
+  return (int)(row[x / 64] >> (x % 64) & 1);
+}
+
+void cloud_cells_export(const cloud_cells_t *c, cloud_field_t f, uint8_t *out) {
+  const uint64_t *p = cloud_cells_plane(c, f);
+  uint32_t nx = c->n[0];
+  size_t rows = (size_t)c->n[1] * c->n[2];
+  for (size_t r = 0; r < rows; r++, out += nx) {
+    const uint64_t *row = p + r * c->words;
+    for (uint32_t x = 0; x < nx; x++)
+      out[x] = (uint8_t)(row[x / 64] >> (x % 64) & 1);
+  }
+}
+
+void cloud_cells_import(cloud_cells_t *c, cloud_field_t f, const uint8_t *in) {
+  uint64_t *p = cloud_cells_plane(c, f);
+  uint32_t nx = c->n[0];
+  size_t rows = (size_t)c->n[1] * c->n[2];
+  memset(p, 0, plane_words(c) * sizeof *p);
+  for (size_t r = 0; r < rows; r++, in += nx) {
+    uint64_t *row = p + r * c->words;
+    for (uint32_t x = 0; x < nx; x++)
+      row[x / 64] |= (uint64_t)(in[x] != 0) << (x % 64);
+  }
+}
+
+/* ---- Random draws ---- */
+
+/* A 32-bit finaliser with full avalanche (every input bit flips each output bit with
+ * probability close to 1/2); a bijection. */
+static inline uint32_t mix32(uint32_t x) {
+  x ^= x >> 16;
+  x *= 0x7feb352du;
+  x ^= x >> 15;
+  x *= 0x846ca68bu;
+  x ^= x >> 16;
+  return x;
+}
+
+/* The part of the hash that does not depend on the cell. */
+static uint32_t draw_base(uint64_t seed, uint64_t step, uint32_t which) {
+  uint32_t h = mix32((uint32_t)seed ^ 0x6a09e667u);
+  h = mix32(h ^ (uint32_t)(seed >> 32));
+  h = mix32(h ^ (uint32_t)step);
+  h = mix32(h ^ (uint32_t)(step >> 32));
+  return mix32(h ^ (which * 0x85ebca6bu + 0x27d4eb2fu));
+}
+
+static inline uint32_t cell_hash(uint32_t base, uint32_t cell) {
+  return mix32((cell * GOLDEN) ^ base);
+}
+
+uint32_t cloud_hash(uint64_t seed, uint64_t step, uint32_t which, uint32_t cell) {
+  return cell_hash(draw_base(seed, step, which), cell);
+}
+
+uint64_t cloud_threshold(double p) {
+  if (!(p > 0))
+    return 0;
+  if (p >= 1)
+    return (uint64_t)1 << 32;
+  return (uint64_t)floor(p * 4294967296.0);
+}
+
+/* 1 - q² of ellipsoid 'e' at (x, y, z); negative outside. */
+static double ellipsoid_inside(const cloud_ellipsoid_t *e, double x, double y, double z) {
+  double dx = (x - e->center[0]) / e->radii[0];
+  double dy = (y - e->center[1]) / e->radii[1];
+  double dz = (z - e->center[2]) / e->radii[2];
+  return 1.0 - (dx * dx + dy * dy + dz * dz);
+}
+
+double cloud_shape(const cloud_params_t *p, double x, double y, double z) {
+  if (p->nellipsoids <= 0)
+    return 1.0;
+  double best = 0;
+  for (int i = 0; i < p->nellipsoids && i < CLOUD_MAX_ELLIPSOIDS; i++) {
+    double v = ellipsoid_inside(&p->ellipsoids[i], x, y, z);
+    if (v > best)
+      best = v;
+  }
+  return best;
+}
+
+/* Whether row (y, z) passes through any ellipsoid (or there are none). */
+static int row_in_shape(const cloud_params_t *p, double y, double z) {
+  if (p->nellipsoids <= 0)
+    return 1;
+  for (int i = 0; i < p->nellipsoids && i < CLOUD_MAX_ELLIPSOIDS; i++) {
+    const cloud_ellipsoid_t *e = &p->ellipsoids[i];
+    double dy = (y - e->center[1]) / e->radii[1];
+    double dz = (z - e->center[2]) / e->radii[2];
+    if (dy * dy + dz * dz < 1)
+      return 1;
+  }
+  return 0;
+}
+
+/*
+ * The mask of the cells of word 'w' of row (y, z) that take an event of probability 'prob'
+ * (times the shape when 'shaped'), drawing from 'base'.
+ */
+static uint64_t draw_mask(const cloud_cells_t *c, const cloud_params_t *p, uint32_t base,
+                          double prob, uint64_t thr, int shaped, uint32_t w, uint32_t y,
+                          uint32_t z) {
+  uint32_t x0 = w * 64, nx = c->n[0];
+  uint32_t nb = nx - x0 < 64 ? nx - x0 : 64;
+  uint32_t cell0 = x0 + nx * (y + c->n[1] * z);
+  uint64_t m = 0;
+  if (!shaped) {
+    for (uint32_t b = 0; b < nb; b++)
+      m |= (uint64_t)((uint64_t)cell_hash(base, cell0 + b) < thr) << b;
+    return m;
+  }
+  for (uint32_t b = 0; b < nb; b++) {
+    double s = cloud_shape(p, x0 + b, y, z);
+    if (s > 0 && (uint64_t)cell_hash(base, cell0 + b) < cloud_threshold(prob * s))
+      m |= (uint64_t)1 << b;
+  }
+  return m;
+}
+
+void cloud_cells_seed(cloud_cells_t *c, const cloud_params_t *p, double hum, double act) {
+  size_t nw = plane_words(c);
+  memset(c->hum, 0, 3 * nw * sizeof *c->hum);
+  c->step = 0;
+  uint32_t bh = draw_base(p->seed, 0, CLOUD_DRAW_INIT_HUM);
+  uint32_t ba = draw_base(p->seed, 0, CLOUD_DRAW_INIT_ACT);
+  uint64_t th = cloud_threshold(hum), ta = cloud_threshold(act);
+  uint32_t nx = c->n[0];
+  for (uint32_t z = 0; z < c->n[2]; z++)
+    for (uint32_t y = 0; y < c->n[1]; y++) {
+      if (!row_in_shape(p, y, z))
+        continue;
+      size_t r = ((size_t)z * c->n[1] + y) * c->words;
+      for (uint32_t w = 0; w < c->words; w++) {
+        uint64_t h = 0, a = 0;
+        for (uint32_t b = 0; b < 64 && w * 64 + b < nx; b++) {
+          uint32_t x = w * 64 + b;
+          if (cloud_shape(p, x, y, z) <= 0)
+            continue;
+          uint32_t cell = x + nx * (y + c->n[1] * z);
+          if ((uint64_t)cell_hash(bh, cell) < th) {
+            h |= (uint64_t)1 << b;
+            if ((uint64_t)cell_hash(ba, cell) < ta)
+              a |= (uint64_t)1 << b;
+          }
+        }
+        c->hum[r + w] = h;
+        c->act[r + w] = a;
+      }
+    }
+}
+
+/* ---- The step ---- */
+
+/* Moves row 'row' ('words' words, 'nx' cells) by 's' cells along x: new[x] = old[x - s]. */
+static void shift_row(uint64_t *row, uint32_t words, uint32_t nx, long s) {
+  if (s == 0)
+    return;
+  long W = words;
+  if (s >= (long)nx || -s >= (long)nx) {
+    memset(row, 0, (size_t)words * sizeof *row);
+    return;
+  }
+  if (s > 0) {
+    long q = s / 64;
+    int r = (int)(s % 64);
+    for (long w = W - 1; w >= 0; w--) {
+      long src = w - q;
+      uint64_t v = src >= 0 ? row[src] << r : 0;
+      if (r && src - 1 >= 0)
+        v |= row[src - 1] >> (64 - r);
+      row[w] = v;
+    }
+  } else {
+    long t = -s, q = t / 64;
+    int r = (int)(t % 64);
+    for (long w = 0; w < W; w++) {
+      long src = w + q;
+      uint64_t v = src < W ? row[src] >> r : 0;
+      if (r && src + 1 < W)
+        v |= row[src + 1] << (64 - r);
+      row[w] = v;
+    }
+  }
+  if (nx % 64)
+    row[W - 1] &= ((uint64_t)1 << (nx % 64)) - 1;
+}
+
+/* The growth rules on every word: out from in. */
+static void grow(const cloud_cells_t *in, cloud_cells_t *out) {
+  uint32_t W = in->words, ny = in->n[1], nz = in->n[2];
+  uint64_t zero[CLOUD_MAX_SIDE / 64] = {0};
+  size_t zs = (size_t)W * ny; /* Words per z plane. */
+  for (uint32_t z = 0; z < nz; z++)
+    for (uint32_t y = 0; y < ny; y++) {
+      size_t r = (size_t)z * zs + (size_t)y * W;
+      const uint64_t *a = in->act + r;
+      const uint64_t *ym1 = y >= 1 ? a - W : zero, *ym2 = y >= 2 ? a - 2 * W : zero;
+      const uint64_t *yp1 = y + 1 < ny ? a + W : zero;
+      const uint64_t *zm1 = z >= 1 ? a - zs : zero, *zm2 = z >= 2 ? a - 2 * zs : zero;
+      const uint64_t *zp1 = z + 1 < nz ? a + zs : zero;
+      const uint64_t *h = in->hum + r, *cl = in->cld + r;
+      uint64_t *oh = out->hum + r, *oa = out->act + r, *oc = out->cld + r;
+      for (uint32_t w = 0; w < W; w++) {
+        uint64_t v = a[w];
+        uint64_t prev = w > 0 ? a[w - 1] : 0, next = w + 1 < W ? a[w + 1] : 0;
+        uint64_t f = (v << 1 | prev >> 63) | (v << 2 | prev >> 62) | (v >> 1 | next << 63) |
+                     ym1[w] | ym2[w] | yp1[w] | zm1[w] | zm2[w] | zp1[w];
+        oc[w] = cl[w] | v;
+        oh[w] = h[w] & ~v;
+        oa[w] = ~v & h[w] & f;
+      }
+    }
+}
+
+void cloud_step(const cloud_cells_t *in, cloud_cells_t *out, const cloud_params_t *p) {
+  grow(in, out);
+  out->step = in->step + 1;
+  if (p->rules != CLOUD_DOBASHI)
+    return;
+  uint32_t W = in->words, ny = in->n[1], nz = in->n[2], nx = in->n[0];
+  uint64_t te = cloud_threshold(p->p_ext), th = cloud_threshold(p->p_hum);
+  uint64_t ta = cloud_threshold(p->p_act);
+  uint32_t be = draw_base(p->seed, in->step, CLOUD_DRAW_EXT);
+  uint32_t bh = draw_base(p->seed, in->step, CLOUD_DRAW_HUM);
+  uint32_t ba = draw_base(p->seed, in->step, CLOUD_DRAW_ACT);
+  int shaped = p->nellipsoids > 0;
+  double s0 = floor((double)in->step * p->wind), s1 = floor((double)(in->step + 1) * p->wind);
+  long shift = (long)(s1 - s0);
+  for (uint32_t z = 0; z < nz; z++)
+    for (uint32_t y = 0; y < ny; y++) {
+      size_t r = ((size_t)z * ny + y) * W;
+      int supply = row_in_shape(p, y, z);
+      for (uint32_t w = 0; w < W; w++) {
+        if (te)
+          out->cld[r + w] &= ~draw_mask(in, p, be, p->p_ext, te, 0, w, y, z);
+        if (supply && th)
+          out->hum[r + w] |= draw_mask(in, p, bh, p->p_hum, th, shaped, w, y, z);
+        if (supply && ta)
+          out->act[r + w] |= draw_mask(in, p, ba, p->p_act, ta, shaped, w, y, z);
+      }
+      if (shift) {
+        shift_row(out->hum + r, W, nx, shift);
+        shift_row(out->act + r, W, nx, shift);
+        shift_row(out->cld + r, W, nx, shift);
+      }
+    }
+}
+
+/* ---- Density ---- */
+
+int cloud_kernel_half(double r) {
+  if (!(r >= 1))
+    return 0;
+  return r > CLOUD_MAX_RADIUS ? CLOUD_MAX_RADIUS : (int)floor(r);
+}
+
+int cloud_kernel(double r, float *w) {
+  int K = cloud_kernel_half(r);
+  if (K == 0) {
+    w[0] = 1;
+    return 0;
+  }
+  double sigma = r / 3, sum = 0, tmp[2 * CLOUD_MAX_RADIUS + 1];
+  for (int d = -K; d <= K; d++)
+    sum += tmp[d + K] = exp(-(double)d * d / (2 * sigma * sigma));
+  for (int i = 0; i <= 2 * K; i++)
+    w[i] = (float)(tmp[i] / sum);
+  return K;
+}
+
+/* y += a × x over 'n' floats. */
+static inline void axpy(float *restrict y, float a, const float *restrict x, uint32_t n) {
+  for (uint32_t i = 0; i < n; i++)
+    y[i] += a * x[i];
+}
+
+#if defined(__x86_64__) && defined(__GNUC__) && !defined(__clang__) &&                             \
+    !defined(__SANITIZE_ADDRESS__)
+#define CLONES __attribute__((target_clones("avx512f", "avx2", "default")))
+#else
+#define CLONES
+#endif
+
+/* The passes over one z plane 'z' with cloud cells: x then y into 'b', flags in 'fb'. Returns
+ * whether any row of 'b' is non-empty. */
+CLONES static int plane_xy(const cloud_cells_t *c, uint32_t z, const float *restrict w, int K,
+                           float *restrict a, float *restrict b, float *restrict row,
+                           uint8_t *restrict fa, uint8_t *restrict fb) {
+  uint32_t nx = c->n[0], ny = c->n[1], W = c->words;
+  int any = 0;
+  for (uint32_t y = 0; y < ny; y++) {
+    const uint64_t *bits = c->cld + ((size_t)z * ny + y) * W;
+    uint64_t set = 0;
+    for (uint32_t i = 0; i < W; i++)
+      set |= bits[i];
+    fa[y] = set != 0;
+    if (!set)
+      continue;
+    /* 'row' has K cells of margin either side, so the kernel never needs clipping. */
+    memset(row, 0, (nx + 2 * (size_t)K) * sizeof *row);
+    for (uint32_t i = 0; i < W; i++)
+      for (uint64_t m = bits[i]; m; m &= m - 1) {
+        uint32_t x = i * 64 + (uint32_t)__builtin_ctzll(m);
+        axpy(row + x, 1.0f, w, 2 * (uint32_t)K + 1);
+      }
+    memcpy(a + (size_t)y * nx, row + K, nx * sizeof *row);
+  }
+  memset(fb, 0, ny);
+  for (uint32_t y = 0; y < ny; y++) {
+    if (!fa[y])
+      continue;
+    for (int d = -K; d <= K; d++) {
+      long t = (long)y + d;
+      if (t < 0 || t >= (long)ny)
+        continue;
+      if (!fb[t]) {
+        memset(b + (size_t)t * nx, 0, nx * sizeof *b);
+        fb[t] = 1;
+      }
+      axpy(b + (size_t)t * nx, w[d + K], a + (size_t)y * nx, nx);
+      any = 1;
+    }
+  }
+  return any;
+}
+
+/* The z pass of plane 'z' ('b' with row flags 'fb') into the output planes within reach. */
+CLONES static void plane_z(const cloud_cells_t *c, uint32_t z, const float *restrict w, int K,
+                           const float *restrict b, const uint8_t *restrict fb,
+                           float *restrict out) {
+  uint32_t nx = c->n[0], ny = c->n[1], nz = c->n[2];
+  for (int d = -K; d <= K; d++) {
+    long t = (long)z + d;
+    if (t < 0 || t >= (long)nz)
+      continue;
+    float *o = out + (size_t)t * nx * ny;
+    for (uint32_t y = 0; y < ny; y++)
+      if (fb[y])
+        axpy(o + (size_t)y * nx, w[d + K], b + (size_t)y * nx, nx);
+  }
+}
+
+int cloud_density(const cloud_cells_t *c, double r, float *out) {
+  uint32_t nx = c->n[0], ny = c->n[1], nz = c->n[2];
+  float w[2 * CLOUD_MAX_RADIUS + 1];
+  int K = cloud_kernel(r, w);
+  size_t plane = (size_t)nx * ny;
+  float *a = malloc(2 * plane * sizeof *a + (nx + 2 * (size_t)K) * sizeof *a);
+  uint8_t *flags = malloc(2 * (size_t)ny);
+  if (!a || !flags) {
+    free(a);
+    free(flags);
+    return -1;
+  }
+  float *b = a + plane, *row = b + plane;
+  memset(out, 0, plane * nz * sizeof *out);
+  for (uint32_t z = 0; z < nz; z++)
+    if (plane_xy(c, z, w, K, a, b, row, flags, flags + ny))
+      plane_z(c, z, w, K, b, flags + ny, out);
+  free(a);
+  free(flags);
+  return 0;
+}
+
+void cloud_blend(float *shown, const float *target, size_t n, float keep) {
+  for (size_t i = 0; i < n; i++)
+    shown[i] = target[i] + keep * (shown[i] - target[i]);
+}
