@@ -510,6 +510,170 @@ static const sch_field_t fluid_fields[] = {
     {0},
 };
 
+/* The cloud (SPEC 5.4): a 64³ automaton over a 6-unit cube standing on y = 0 at the centre. */
+static const double cloud_grid[3] = {64, 64, 64};
+static const double cloud_origin[3] = {-3, 0, -3};
+static const double cloud_albedo[3] = {0.95, 0.95, 0.95};
+static const char *const cloud_rules[] = {"kuromiya", "dobashi", NULL};
+
+static const sch_field_t cloud_init_fields[] = {
+    {.name = "hum",
+     .type = SCH_NUMBER,
+     .desc = "Probability that a cell starts with humidity (inside an ellipsoid, when there "
+             "are any).",
+     .min = 0,
+     .max = 1,
+     .def = 0.6},
+    {.name = "act",
+     .type = SCH_NUMBER,
+     .desc = "Probability that a humid cell also starts active (a seed of growth).",
+     .min = 0,
+     .max = 1,
+     .def = 0.0005},
+    {0},
+};
+
+static const sch_field_t cloud_ellipsoid_fields[] = {
+    {.name = "center",
+     .type = SCH_VEC3,
+     .desc = "Centre of the ellipsoid.",
+     .unit = "world units",
+     .min = -WORLD,
+     .max = WORLD,
+     .flags = SCH_REQUIRED},
+    {.name = "radii",
+     .type = SCH_VEC3,
+     .desc = "Semi-axes along x, y and z; each above 0.",
+     .unit = "world units",
+     .min = 0,
+     .max = WORLD,
+     .flags = SCH_REQUIRED},
+    {0},
+};
+static const sch_field_t cloud_ellipsoid_item = {
+    .type = SCH_OBJECT,
+    .desc = "An ellipsoid where humidity and activation are supplied, most at its centre.",
+    .fields = cloud_ellipsoid_fields};
+
+static const sch_field_t cloud_fields[] = {
+    {.name = "enabled",
+     .type = SCH_BOOL,
+     .desc = "Whether the cloud exists: stepped by sim.step and sim.play and drawn. Enabling it "
+             "seeds fresh cells."},
+    {.name = "grid",
+     .type = SCH_VEC3,
+     .desc = "Cells along x, y and z: integers from 1 to limits.cloud_side. Changing it seeds "
+             "fresh cells.",
+     .unit = "cells",
+     .min = 1,
+     .max = 1024,
+     .def_vec = cloud_grid},
+    {.name = "origin",
+     .type = SCH_VEC3,
+     .desc = "Lowest corner of the grid; the cloud fills origin .. origin + grid × voxel.",
+     .unit = "world units",
+     .min = -WORLD,
+     .max = WORLD,
+     .def_vec = cloud_origin},
+    {.name = "voxel",
+     .type = SCH_NUMBER,
+     .desc = "Edge of one cell.",
+     .unit = "world units",
+     .min = 0,
+     .max = 1000,
+     .def = 0.09375,
+     .flags = SCH_POSITIVE},
+    {.name = "rules",
+     .type = SCH_ENUM,
+     .desc = "kuromiya: the deterministic growth rules of SPEC 5.4; dobashi: the same plus "
+             "random extinction (p_ext), supply (p_hum, p_act) and wind.",
+     .def_str = "kuromiya",
+     .enum_values = cloud_rules},
+    {.name = "p_ext",
+     .type = SCH_NUMBER,
+     .desc = "dobashi: probability per step that a cloud cell vanishes.",
+     .min = 0,
+     .max = 1,
+     .def = 0.002},
+    {.name = "p_hum",
+     .type = SCH_NUMBER,
+     .desc = "dobashi: probability per step that a cell gains humidity (times the ellipsoids' "
+             "shape, when there are any).",
+     .min = 0,
+     .max = 1,
+     .def = 0.01},
+    {.name = "p_act",
+     .type = SCH_NUMBER,
+     .desc = "dobashi: probability per step that a cell becomes active (times the ellipsoids' "
+             "shape, when there are any).",
+     .min = 0,
+     .max = 1,
+     .def = 0.0005},
+    {.name = "wind",
+     .type = SCH_NUMBER,
+     .desc = "dobashi: the cells move this far along +x per step (fractions accumulate); those "
+             "leaving the grid are lost.",
+     .unit = "cells/step",
+     .min = -64,
+     .max = 64},
+    {.name = "ellipsoids",
+     .type = SCH_ARRAY,
+     .desc = "Where the initial humidity and the dobashi supply go: none means everywhere.",
+     .max = 16,
+     .items = &cloud_ellipsoid_item},
+    {.name = "metaball_radius",
+     .type = SCH_NUMBER,
+     .desc = "Effective radius of each cloud cell's Gaussian metaball (sigma = radius / 3); 0 "
+             "takes 9 cells at 64 cells along the longest side, scaled with the grid.",
+     .unit = "cells",
+     .min = 0,
+     .max = 128},
+    {.name = "seed",
+     .type = SCH_INTEGER,
+     .desc = "Seed of the initial cells and of the dobashi draws; changing it seeds fresh cells.",
+     .min = 0,
+     .max = TWO_53,
+     .def = 1},
+    {.name = "steps_per_frame",
+     .type = SCH_INTEGER,
+     .desc = "Automaton steps per simulation step.",
+     .min = 1,
+     .max = 64,
+     .def = 1},
+    {.name = "smoothing",
+     .type = SCH_NUMBER,
+     .desc = "Fraction of the previous density kept at each simulation step, so that growth "
+             "fades in instead of popping; 0 shows each new density at once.",
+     .min = 0,
+     .max = 0.99,
+     .def = 0.5},
+    {.name = "init",
+     .type = SCH_OBJECT,
+     .desc = "How fresh cells are seeded (no cloud cells, random humidity and a few active "
+             "cells, drawn from seed); changing it seeds fresh cells.",
+     .fields = cloud_init_fields},
+    {.name = "density",
+     .type = SCH_NUMBER,
+     .desc = "Extinction where the metaball density is 1 (inside a solid cloud).",
+     .unit = "1/world unit",
+     .min = 0,
+     .max = 1e4,
+     .def = 8},
+    {.name = "albedo",
+     .type = SCH_VEC3,
+     .desc = "Single-scattering albedo, linear RGB.",
+     .min = 0,
+     .max = 1,
+     .def_vec = cloud_albedo},
+    {.name = "samples",
+     .type = SCH_INTEGER,
+     .desc = "Samples per ray inside the cloud's box.",
+     .min = 1,
+     .max = 4096,
+     .def = 64},
+    {0},
+};
+
 static const sch_field_t scene_fields[] = {
     {.name = "camera",
      .type = SCH_OBJECT,
@@ -548,6 +712,11 @@ static const sch_field_t scene_fields[] = {
      .desc = "The SPH particle fluid (SPEC 5.2), drawn as metaballs; its particles are set and "
              "read through fluid.set_particles and fluid.get_particles.",
      .fields = fluid_fields},
+    {.name = "cloud",
+     .type = SCH_OBJECT,
+     .desc = "The cellular-automaton cloud (SPEC 5.4); its cells are read and written through "
+             "cloud.get_cells and cloud.set_cells.",
+     .fields = cloud_fields},
     {0},
 };
 

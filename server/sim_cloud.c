@@ -444,7 +444,7 @@ int cloud_density(const cloud_cells_t *c, double r, float *out) {
   return 0;
 }
 
-void cloud_blend(float *shown, const float *target, size_t n, float keep) {
+void cloud_blend(float *target, const float *shown, size_t n, float keep) {
   for (size_t i = 0; i < n; i++)
-    shown[i] = target[i] + keep * (shown[i] - target[i]);
+    target[i] += keep * (shown[i] - target[i]);
 }

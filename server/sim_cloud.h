@@ -129,7 +129,9 @@ int cloud_kernel(double r, float *w);
  */
 int cloud_density(const cloud_cells_t *c, double r, float *out);
 
-/* Moves 'shown' toward 'target' (n floats): shown = target + keep × (shown - target). */
-void cloud_blend(float *shown, const float *target, size_t n, float keep);
+/* The density shown after a step, in place of 'target' (n floats): the new density 'target'
+ * with the fraction 'keep' of the difference from the density 'shown' before it kept:
+ * target = target + keep × (shown - target). */
+void cloud_blend(float *target, const float *shown, size_t n, float keep);
 
 #endif

@@ -390,9 +390,9 @@ static void test_density_full(void) {
 
 static void test_blend(void) {
   float shown[3] = {0, 1, 2}, target[3] = {2, 1, 0};
-  cloud_blend(shown, target, 3, 0.25f);
-  CHECK(shown[0] == 1.5f && shown[1] == 1 && shown[2] == 0.5f, "blend %g %g %g", shown[0], shown[1],
-        shown[2]);
+  cloud_blend(target, shown, 3, 0.25f);
+  CHECK(target[0] == 1.5f && target[1] == 1 && target[2] == 0.5f, "blend %g %g %g", target[0],
+        target[1], target[2]);
 }
 
 int main(void) {
