@@ -406,7 +406,8 @@ void cloud_link_unref(cloud_link_t *l) {
   }
 }
 
-/* The cloud's checks: integral grid sides within limits.cloud_side, ellipsoid radii above 0. */
+/* The cloud's checks: integral grid sides, within limits.cloud_side when enabled; ellipsoid
+ * radii above 0. */
 static int check_cloud(const cJSON *doc, scene_error_t *err) {
   const cJSON *cloud = get(doc, "cloud");
   double n[3];
@@ -415,7 +416,8 @@ static int check_cloud(const cJSON *doc, scene_error_t *err) {
     if (n[i] != floor(n[i]))
       return set_err(err, PROTO_E_INVALID_PARAMS, "cloud.grid",
                      "cloud.grid: %g is not a whole number of cells", n[i]);
-    if (n[i] > g_cloud_side)
+    /* A disabled cloud has no cells, so only an enabled one is held to the limit. */
+    if (n[i] > g_cloud_side && cJSON_IsTrue(get(cloud, "enabled")))
       return set_err(err, PROTO_E_LIMIT, "cloud.grid",
                      "cloud.grid: %g cells is over the limit of %u per side (limits.cloud_side)",
                      n[i], g_cloud_side);
