@@ -363,12 +363,31 @@ static inline void axpy(float *restrict y, float a, const float *restrict x, uin
 #define CLONES
 #endif
 
+/*
+ * The x pass reads the cells a byte at a time: 'tab' holds, for each of the 256 bytes, the
+ * kernel summed over its set bits, TAB_W(K) floats from 8 p - K for the byte of cells 8 p ..
+ * 8 p + 7, so a byte costs one short vector add however many cells it holds.
+ */
+#define TAB_W(K) ((8 + 2 * (uint32_t)(K) + 15) / 16 * 16)
+
+static void x_table(const float *w, int K, float *tab) {
+  uint32_t tw = TAB_W(K);
+  for (uint32_t v = 0; v < 256; v++) {
+    float *t = tab + v * tw;
+    memset(t, 0, tw * sizeof *t);
+    for (int b = 0; b < 8; b++)
+      if (v >> b & 1)
+        for (int j = 0; j <= 2 * K; j++)
+          t[b + j] += w[j];
+  }
+}
+
 /* The passes over one z plane 'z' with cloud cells: x then y into 'b', flags in 'fb'. Returns
  * whether any row of 'b' is non-empty. */
 CLONES static int plane_xy(const cloud_cells_t *c, uint32_t z, const float *restrict w, int K,
-                           float *restrict a, float *restrict b, float *restrict row,
-                           uint8_t *restrict fa, uint8_t *restrict fb) {
-  uint32_t nx = c->n[0], ny = c->n[1], W = c->words;
+                           const float *restrict tab, float *restrict a, float *restrict b,
+                           float *restrict row, uint8_t *restrict fa, uint8_t *restrict fb) {
+  uint32_t nx = c->n[0], ny = c->n[1], W = c->words, tw = TAB_W(K);
   int any = 0;
   for (uint32_t y = 0; y < ny; y++) {
     const uint64_t *bits = c->cld + ((size_t)z * ny + y) * W;
@@ -378,13 +397,17 @@ CLONES static int plane_xy(const cloud_cells_t *c, uint32_t z, const float *rest
     fa[y] = set != 0;
     if (!set)
       continue;
-    /* 'row' has K cells of margin either side, so the kernel never needs clipping. */
-    memset(row, 0, (nx + 2 * (size_t)K) * sizeof *row);
-    for (uint32_t i = 0; i < W; i++)
-      for (uint64_t m = bits[i]; m; m &= m - 1) {
-        uint32_t x = i * 64 + (uint32_t)__builtin_ctzll(m);
-        axpy(row + x, 1.0f, w, 2 * (uint32_t)K + 1);
+    /* 'row' starts K cells before x = 0 and reaches past the last byte's reach. */
+    memset(row, 0, ((size_t)W * 64 + tw) * sizeof *row);
+    for (uint32_t i = 0; i < W; i++) {
+      if (!bits[i])
+        continue;
+      for (uint32_t p = 0; p < 8; p++) {
+        uint32_t v = (uint32_t)(bits[i] >> (8 * p)) & 255;
+        if (v)
+          axpy(row + i * 64 + 8 * p, 1.0f, tab + v * tw, tw);
       }
+    }
     memcpy(a + (size_t)y * nx, row + K, nx * sizeof *row);
   }
   memset(fb, 0, ny);
@@ -406,20 +429,36 @@ CLONES static int plane_xy(const cloud_cells_t *c, uint32_t z, const float *rest
   return any;
 }
 
-/* The z pass of plane 'z' ('b' with row flags 'fb') into the output planes within reach. */
-CLONES static void plane_z(const cloud_cells_t *c, uint32_t z, const float *restrict w, int K,
-                           const float *restrict b, const uint8_t *restrict fb,
-                           float *restrict out) {
+/* The z pass into output rows (t, y) for every t, y: the sum over the planes z within reach
+ * of w × b[z] row y, over the rows flagged in 'fb' (ny flags per plane). Row y of every plane
+ * is handled together so that the 2K + 1 rows read for each output row stay in cache. */
+CLONES static void pass_z(const cloud_cells_t *c, const float *restrict w, int K,
+                          const float *restrict b, const uint8_t *restrict fb,
+                          float *restrict out) {
   uint32_t nx = c->n[0], ny = c->n[1], nz = c->n[2];
-  for (int d = -K; d <= K; d++) {
-    long t = (long)z + d;
-    if (t < 0 || t >= (long)nz)
-      continue;
-    float *o = out + (size_t)t * nx * ny;
-    for (uint32_t y = 0; y < ny; y++)
-      if (fb[y])
-        axpy(o + (size_t)y * nx, w[d + K], b + (size_t)y * nx, nx);
-  }
+  size_t plane = (size_t)nx * ny;
+  for (uint32_t y = 0; y < ny; y++)
+    for (uint32_t t = 0; t < nz; t++) {
+      float *o = out + t * plane + (size_t)y * nx;
+      int first = 1;
+      long lo = (long)t - K < 0 ? 0 : (long)t - K;
+      long hi = (long)t + K >= (long)nz ? (long)nz - 1 : (long)t + K;
+      for (long z = lo; z <= hi; z++) {
+        if (!fb[z * ny + y])
+          continue;
+        const float *src = b + (size_t)z * plane + (size_t)y * nx;
+        float wz = w[z - (long)t + K];
+        if (first) {
+          for (uint32_t i = 0; i < nx; i++)
+            o[i] = wz * src[i];
+          first = 0;
+        } else {
+          axpy(o, wz, src, nx);
+        }
+      }
+      if (first)
+        memset(o, 0, nx * sizeof *o);
+    }
 }
 
 int cloud_density(const cloud_cells_t *c, double r, float *out) {
@@ -427,18 +466,22 @@ int cloud_density(const cloud_cells_t *c, double r, float *out) {
   float w[2 * CLOUD_MAX_RADIUS + 1];
   int K = cloud_kernel(r, w);
   size_t plane = (size_t)nx * ny;
-  float *a = malloc(2 * plane * sizeof *a + (nx + 2 * (size_t)K) * sizeof *a);
-  uint8_t *flags = malloc(2 * (size_t)ny);
+  /* 'a' holds one plane after the x pass, 'b' every plane after the x and y passes. */
+  size_t rowlen = (size_t)c->words * 64 + TAB_W(K);
+  float *a = malloc((plane * (nz + 1) + rowlen + 256 * (size_t)TAB_W(K)) * sizeof *a);
+  uint8_t *flags = malloc((size_t)ny * (nz + 1));
   if (!a || !flags) {
     free(a);
     free(flags);
     return -1;
   }
-  float *b = a + plane, *row = b + plane;
-  memset(out, 0, plane * nz * sizeof *out);
+  float *b = a + plane, *row = b + plane * nz, *tab = row + rowlen;
+  uint8_t *fa = flags + (size_t)ny * nz;
+  x_table(w, K, tab);
   for (uint32_t z = 0; z < nz; z++)
-    if (plane_xy(c, z, w, K, a, b, row, flags, flags + ny))
-      plane_z(c, z, w, K, b, flags + ny, out);
+    if (!plane_xy(c, z, w, K, tab, a, b + z * plane, row, fa, flags + (size_t)z * ny))
+      memset(flags + (size_t)z * ny, 0, ny);
+  pass_z(c, w, K, b, flags, out);
   free(a);
   free(flags);
   return 0;
