@@ -20,6 +20,15 @@
 
 #define GOLDEN 0x9E3779B1u
 
+/* The hot loops are built for AVX-512, AVX2 and the baseline, picked at load time (GCC's
+ * function multi-versioning; not under ASan, which does not support it). */
+#if defined(__x86_64__) && defined(__GNUC__) && !defined(__clang__) &&                             \
+    !defined(__SANITIZE_ADDRESS__)
+#define CLONES __attribute__((target_clones("avx512f", "avx2", "default")))
+#else
+#define CLONES
+#endif
+
 cloud_cells_t *cloud_cells_new(const uint32_t n[3]) {
   for (int i = 0; i < 3; i++)
     if (n[i] < 1 || n[i] > CLOUD_MAX_SIDE)
@@ -179,17 +188,28 @@ static int row_in_shape(const cloud_params_t *p, double y, double z) {
  * The mask of the cells of word 'w' of row (y, z) that take an event of probability 'prob'
  * (times the shape when 'shaped'), drawing from 'base'.
  */
-static uint64_t draw_mask(const cloud_cells_t *c, const cloud_params_t *p, uint32_t base,
-                          double prob, uint64_t thr, int shaped, uint32_t w, uint32_t y,
-                          uint32_t z) {
+static inline uint64_t draw_mask(const cloud_cells_t *c, const cloud_params_t *p, uint32_t base,
+                                 double prob, uint64_t thr, int shaped, uint32_t w, uint32_t y,
+                                 uint32_t z) {
   uint32_t x0 = w * 64, nx = c->n[0];
   uint32_t nb = nx - x0 < 64 ? nx - x0 : 64;
   uint32_t cell0 = x0 + nx * (y + c->n[1] * z);
   uint64_t m = 0;
   if (!shaped) {
-    for (uint32_t b = 0; b < nb; b++)
-      m |= (uint64_t)((uint64_t)cell_hash(base, cell0 + b) < thr) << b;
-    return m;
+    if (thr > UINT32_MAX)
+      return nb == 64 ? ~(uint64_t)0 : ((uint64_t)1 << nb) - 1;
+    /* Hashes and compares of 64 cells as one vector loop, then the 0/1 bytes packed eight at
+     * a time: (v × 0x0102040810204080) >> 56 gathers byte i's low bit into bit i. */
+    uint8_t hit[64];
+    uint32_t t32 = (uint32_t)thr;
+    for (uint32_t b = 0; b < 64; b++)
+      hit[b] = cell_hash(base, cell0 + b) < t32;
+    for (uint32_t g = 0; g < 8; g++) {
+      uint64_t v;
+      memcpy(&v, hit + 8 * g, 8);
+      m |= ((v * 0x0102040810204080ull) >> 56) << (8 * g);
+    }
+    return nb == 64 ? m : m & (((uint64_t)1 << nb) - 1);
   }
   for (uint32_t b = 0; b < nb; b++) {
     double s = cloud_shape(p, x0 + b, y, z);
@@ -232,6 +252,12 @@ void cloud_cells_seed(cloud_cells_t *c, const cloud_params_t *p, double hum, dou
 }
 
 /* ---- The step ---- */
+
+/* The bits of word 'w' of a row that are cells (x < nx). */
+static uint64_t valid(uint32_t nx, uint32_t w) {
+  uint32_t nb = nx - w * 64;
+  return nb >= 64 ? ~(uint64_t)0 : ((uint64_t)1 << nb) - 1;
+}
 
 /* Moves row 'row' ('words' words, 'nx' cells) by 's' cells along x: new[x] = old[x - s]. */
 static void shift_row(uint64_t *row, uint32_t words, uint32_t nx, long s) {
@@ -294,11 +320,8 @@ static void grow(const cloud_cells_t *in, cloud_cells_t *out) {
     }
 }
 
-void cloud_step(const cloud_cells_t *in, cloud_cells_t *out, const cloud_params_t *p) {
-  grow(in, out);
-  out->step = in->step + 1;
-  if (p->rules != CLOUD_DOBASHI)
-    return;
+/* The Dobashi part of a step: draws on 'out', grown from 'in', then the wind. */
+CLONES static void dobashi(const cloud_cells_t *in, cloud_cells_t *out, const cloud_params_t *p) {
   uint32_t W = in->words, ny = in->n[1], nz = in->n[2], nx = in->n[0];
   uint64_t te = cloud_threshold(p->p_ext), th = cloud_threshold(p->p_hum);
   uint64_t ta = cloud_threshold(p->p_act);
@@ -313,9 +336,10 @@ void cloud_step(const cloud_cells_t *in, cloud_cells_t *out, const cloud_params_
       size_t r = ((size_t)z * ny + y) * W;
       int supply = row_in_shape(p, y, z);
       for (uint32_t w = 0; w < W; w++) {
-        if (te)
+        /* Draws that could change nothing are skipped: no cloud to clear, all humid. */
+        if (te && out->cld[r + w])
           out->cld[r + w] &= ~draw_mask(in, p, be, p->p_ext, te, 0, w, y, z);
-        if (supply && th)
+        if (supply && th && ~out->hum[r + w] & valid(nx, w))
           out->hum[r + w] |= draw_mask(in, p, bh, p->p_hum, th, shaped, w, y, z);
         if (supply && ta)
           out->act[r + w] |= draw_mask(in, p, ba, p->p_act, ta, shaped, w, y, z);
@@ -326,6 +350,13 @@ void cloud_step(const cloud_cells_t *in, cloud_cells_t *out, const cloud_params_
         shift_row(out->cld + r, W, nx, shift);
       }
     }
+}
+
+void cloud_step(const cloud_cells_t *in, cloud_cells_t *out, const cloud_params_t *p) {
+  grow(in, out);
+  out->step = in->step + 1;
+  if (p->rules == CLOUD_DOBASHI)
+    dobashi(in, out, p);
 }
 
 /* ---- Density ---- */
@@ -355,13 +386,6 @@ static inline void axpy(float *restrict y, float a, const float *restrict x, uin
   for (uint32_t i = 0; i < n; i++)
     y[i] += a * x[i];
 }
-
-#if defined(__x86_64__) && defined(__GNUC__) && !defined(__clang__) &&                             \
-    !defined(__SANITIZE_ADDRESS__)
-#define CLONES __attribute__((target_clones("avx512f", "avx2", "default")))
-#else
-#define CLONES
-#endif
 
 /*
  * The x pass reads the cells a byte at a time: 'tab' holds, for each of the 256 bytes, the
