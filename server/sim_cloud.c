@@ -15,8 +15,10 @@
 #include "sim_cloud.h"
 
 #include <math.h>
+#include <pthread.h>
 #include <stdlib.h>
 #include <string.h>
+#include <unistd.h>
 
 #define GOLDEN 0x9E3779B1u
 
@@ -453,15 +455,15 @@ CLONES static int plane_xy(const cloud_cells_t *c, uint32_t z, const float *rest
   return any;
 }
 
-/* The z pass into output rows (t, y) for every t, y: the sum over the planes z within reach
- * of w × b[z] row y, over the rows flagged in 'fb' (ny flags per plane). Row y of every plane
+/* The z pass into output rows (t, y) for every t and y0 <= y < y1: the sum over the planes z within
+ * reach of w × b[z] row y, over the rows flagged in 'fb' (ny flags per plane). Row y of every plane
  * is handled together so that the 2K + 1 rows read for each output row stay in cache. */
 CLONES static void pass_z(const cloud_cells_t *c, const float *restrict w, int K,
-                          const float *restrict b, const uint8_t *restrict fb,
-                          float *restrict out) {
+                          const float *restrict b, const uint8_t *restrict fb, float *restrict out,
+                          uint32_t y0, uint32_t y1) {
   uint32_t nx = c->n[0], ny = c->n[1], nz = c->n[2];
   size_t plane = (size_t)nx * ny;
-  for (uint32_t y = 0; y < ny; y++)
+  for (uint32_t y = y0; y < y1; y++)
     for (uint32_t t = 0; t < nz; t++) {
       float *o = out + t * plane + (size_t)y * nx;
       int first = 1;
@@ -485,28 +487,94 @@ CLONES static void pass_z(const cloud_cells_t *c, const float *restrict w, int K
     }
 }
 
+#define DENSITY_THREADS 4 /* At most; fewer on fewer cores or small grids. */
+
+/* One thread's share of the density: planes [z0, z1) through the x and y passes, then, after
+ * every thread is done with those, rows [y0, y1) through the z pass. */
+typedef struct part {
+  const cloud_cells_t *c;
+  const float *w, *tab;
+  int K;
+  float *a, *row, *b, *out; /* 'a', 'row' and 'fa' are the part's own scratch. */
+  uint8_t *fa, *flags;
+  uint32_t z0, z1, y0, y1;
+} part_t;
+
+static void *part_xy(void *arg) {
+  part_t *p = arg;
+  size_t plane = (size_t)p->c->n[0] * p->c->n[1];
+  uint32_t ny = p->c->n[1];
+  for (uint32_t z = p->z0; z < p->z1; z++)
+    if (!plane_xy(p->c, z, p->w, p->K, p->tab, p->a, p->b + z * plane, p->row, p->fa,
+                  p->flags + (size_t)z * ny))
+      memset(p->flags + (size_t)z * ny, 0, ny);
+  return NULL;
+}
+
+static void *part_z(void *arg) {
+  part_t *p = arg;
+  pass_z(p->c, p->w, p->K, p->b, p->flags, p->out, p->y0, p->y1);
+  return NULL;
+}
+
+/* Runs 'fn' on parts[0 .. n) with n - 1 extra threads; a part whose thread cannot start runs
+ * on the caller. */
+static void run_parts(void *(*fn)(void *), part_t *parts, int n) {
+  pthread_t th[DENSITY_THREADS];
+  int started[DENSITY_THREADS] = {0};
+  for (int i = 1; i < n; i++)
+    started[i] = pthread_create(&th[i], NULL, fn, &parts[i]) == 0;
+  fn(&parts[0]);
+  for (int i = 1; i < n; i++) {
+    if (started[i])
+      pthread_join(th[i], NULL);
+    else
+      fn(&parts[i]);
+  }
+}
+
 int cloud_density(const cloud_cells_t *c, double r, float *out) {
   uint32_t nx = c->n[0], ny = c->n[1], nz = c->n[2];
   float w[2 * CLOUD_MAX_RADIUS + 1];
   int K = cloud_kernel(r, w);
   size_t plane = (size_t)nx * ny;
-  /* 'a' holds one plane after the x pass, 'b' every plane after the x and y passes. */
-  size_t rowlen = (size_t)c->words * 64 + TAB_W(K);
-  float *a = malloc((plane * (nz + 1) + rowlen + 256 * (size_t)TAB_W(K)) * sizeof *a);
-  uint8_t *flags = malloc((size_t)ny * (nz + 1));
-  if (!a || !flags) {
-    free(a);
+  long cpus = sysconf(_SC_NPROCESSORS_ONLN);
+  int n = cpus < 1 ? 1 : cpus > DENSITY_THREADS ? DENSITY_THREADS : (int)cpus;
+  /* A thread costs tens of microseconds: not worth it below about 32³. */
+  if ((size_t)plane * nz < 32768 || nz < (uint32_t)n || ny < (uint32_t)n)
+    n = 1;
+  /* 'b' holds every plane after the x and y passes; each part has a plane 'a' after the x
+   * pass and a padded row. */
+  size_t rowlen = (size_t)c->words * 64 + TAB_W(K), tablen = 256 * (size_t)TAB_W(K);
+  float *mem = malloc((plane * nz + tablen + (size_t)n * (plane + rowlen)) * sizeof *mem);
+  uint8_t *flags = malloc((size_t)ny * (nz + (size_t)n));
+  if (!mem || !flags) {
+    free(mem);
     free(flags);
     return -1;
   }
-  float *b = a + plane, *row = b + plane * nz, *tab = row + rowlen;
-  uint8_t *fa = flags + (size_t)ny * nz;
+  float *b = mem, *tab = b + plane * nz, *scratch = tab + tablen;
   x_table(w, K, tab);
-  for (uint32_t z = 0; z < nz; z++)
-    if (!plane_xy(c, z, w, K, tab, a, b + z * plane, row, fa, flags + (size_t)z * ny))
-      memset(flags + (size_t)z * ny, 0, ny);
-  pass_z(c, w, K, b, flags, out);
-  free(a);
+  part_t parts[DENSITY_THREADS];
+  for (int i = 0; i < n; i++) {
+    parts[i] = (part_t){.c = c,
+                        .w = w,
+                        .tab = tab,
+                        .K = K,
+                        .a = scratch + (size_t)i * (plane + rowlen),
+                        .b = b,
+                        .out = out,
+                        .fa = flags + (size_t)ny * (nz + (size_t)i),
+                        .flags = flags,
+                        .z0 = (uint32_t)((uint64_t)nz * i / n),
+                        .z1 = (uint32_t)((uint64_t)nz * (i + 1) / n),
+                        .y0 = (uint32_t)((uint64_t)ny * i / n),
+                        .y1 = (uint32_t)((uint64_t)ny * (i + 1) / n)};
+    parts[i].row = parts[i].a + plane;
+  }
+  run_parts(part_xy, parts, n);
+  run_parts(part_z, parts, n);
+  free(mem);
   free(flags);
   return 0;
 }
