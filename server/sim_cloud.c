@@ -389,6 +389,54 @@ static inline void axpy(float *restrict y, float a, const float *restrict x, uin
     y[i] += a * x[i];
 }
 
+/* Sixteen floats as one value (one AVX-512 register; two or four narrower ones elsewhere). */
+typedef float v16 __attribute__((vector_size(64)));
+
+/*
+ * o = the sum over k < 'm' (at least 1) of wk[k] × src[k], over 'n' floats. The sums of 64
+ * outputs are kept in four registers across all of 'src', so each output is written once;
+ * adding into 'o' tap by tap instead waits on a store and a load per tap.
+ */
+static inline void gather(float *restrict o, const float *const *src, const float *wk, int m,
+                          uint32_t n) {
+  uint32_t i = 0;
+  for (; i + 64 <= n; i += 64) {
+    v16 a0 = {0}, a1 = {0}, a2 = {0}, a3 = {0};
+    for (int k = 0; k < m; k++) {
+      const float *p = src[k] + i;
+      float w = wk[k];
+      v16 x0, x1, x2, x3;
+      memcpy(&x0, p, sizeof x0);
+      memcpy(&x1, p + 16, sizeof x1);
+      memcpy(&x2, p + 32, sizeof x2);
+      memcpy(&x3, p + 48, sizeof x3);
+      a0 += w * x0;
+      a1 += w * x1;
+      a2 += w * x2;
+      a3 += w * x3;
+    }
+    memcpy(o + i, &a0, sizeof a0);
+    memcpy(o + i + 16, &a1, sizeof a1);
+    memcpy(o + i + 32, &a2, sizeof a2);
+    memcpy(o + i + 48, &a3, sizeof a3);
+  }
+  for (; i + 16 <= n; i += 16) {
+    v16 a = {0};
+    for (int k = 0; k < m; k++) {
+      v16 x;
+      memcpy(&x, src[k] + i, sizeof x);
+      a += wk[k] * x;
+    }
+    memcpy(o + i, &a, sizeof a);
+  }
+  for (; i < n; i++) {
+    float a = 0;
+    for (int k = 0; k < m; k++)
+      a += wk[k] * src[k][i];
+    o[i] = a;
+  }
+}
+
 /*
  * The x pass reads the cells a byte at a time: 'tab' holds, for each of the 256 bytes, the
  * kernel summed over its set bits, TAB_W(K) floats from 8 p - K for the byte of cells 8 p ..
@@ -436,24 +484,30 @@ CLONES static int plane_xy(const cloud_cells_t *c, uint32_t z, const float *rest
     }
     memcpy(a + (size_t)y * nx, row + K, nx * sizeof *row);
   }
-  memset(fb, 0, ny);
-  for (uint32_t y = 0; y < ny; y++) {
-    if (!fa[y])
-      continue;
+  for (uint32_t t = 0; t < ny; t++) {
+    const float *src[2 * CLOUD_MAX_RADIUS + 1];
+    float wk[2 * CLOUD_MAX_RADIUS + 1];
+    int m = 0;
     for (int d = -K; d <= K; d++) {
-      long t = (long)y + d;
-      if (t < 0 || t >= (long)ny)
-        continue;
-      if (!fb[t]) {
-        memset(b + (size_t)t * nx, 0, nx * sizeof *b);
-        fb[t] = 1;
+      long y = (long)t + d;
+      if (y >= 0 && y < (long)ny && fa[y]) {
+        src[m] = a + (size_t)y * nx;
+        wk[m++] = w[d + K];
       }
-      axpy(b + (size_t)t * nx, w[d + K], a + (size_t)y * nx, nx);
+    }
+    fb[t] = m > 0;
+    if (m) {
+      gather(b + (size_t)t * nx, src, wk, m, nx);
       any = 1;
     }
   }
   return any;
 }
+
+/* The planes after the y pass lie this many floats apart: one cache line more than a plane, so
+ * that the same row of successive planes, which the z pass reads together, does not fall into
+ * one cache set when a plane is a power of two bytes. */
+#define BSTRIDE(plane) ((plane) + 16)
 
 /* The z pass into output rows (t, y) for every t and y0 <= y < y1: the sum over the planes z within
  * reach of w × b[z] row y, over the rows flagged in 'fb' (ny flags per plane). Row y of every plane
@@ -465,24 +519,20 @@ CLONES static void pass_z(const cloud_cells_t *c, const float *restrict w, int K
   size_t plane = (size_t)nx * ny;
   for (uint32_t y = y0; y < y1; y++)
     for (uint32_t t = 0; t < nz; t++) {
-      float *o = out + t * plane + (size_t)y * nx;
-      int first = 1;
-      long lo = (long)t - K < 0 ? 0 : (long)t - K;
-      long hi = (long)t + K >= (long)nz ? (long)nz - 1 : (long)t + K;
-      for (long z = lo; z <= hi; z++) {
-        if (!fb[z * ny + y])
-          continue;
-        const float *src = b + (size_t)z * plane + (size_t)y * nx;
-        float wz = w[z - (long)t + K];
-        if (first) {
-          for (uint32_t i = 0; i < nx; i++)
-            o[i] = wz * src[i];
-          first = 0;
-        } else {
-          axpy(o, wz, src, nx);
+      const float *src[2 * CLOUD_MAX_RADIUS + 1];
+      float wk[2 * CLOUD_MAX_RADIUS + 1];
+      int m = 0;
+      for (int d = -K; d <= K; d++) {
+        long z = (long)t + d;
+        if (z >= 0 && z < (long)nz && fb[z * ny + y]) {
+          src[m] = b + (size_t)z * BSTRIDE(plane) + (size_t)y * nx;
+          wk[m++] = w[d + K];
         }
       }
-      if (first)
+      float *o = out + t * plane + (size_t)y * nx;
+      if (m)
+        gather(o, src, wk, m, nx);
+      else
         memset(o, 0, nx * sizeof *o);
     }
 }
@@ -505,7 +555,7 @@ static void *part_xy(void *arg) {
   size_t plane = (size_t)p->c->n[0] * p->c->n[1];
   uint32_t ny = p->c->n[1];
   for (uint32_t z = p->z0; z < p->z1; z++)
-    if (!plane_xy(p->c, z, p->w, p->K, p->tab, p->a, p->b + z * plane, p->row, p->fa,
+    if (!plane_xy(p->c, z, p->w, p->K, p->tab, p->a, p->b + z * BSTRIDE(plane), p->row, p->fa,
                   p->flags + (size_t)z * ny))
       memset(p->flags + (size_t)z * ny, 0, ny);
   return NULL;
@@ -546,14 +596,14 @@ int cloud_density(const cloud_cells_t *c, double r, float *out) {
   /* 'b' holds every plane after the x and y passes; each part has a plane 'a' after the x
    * pass and a padded row. */
   size_t rowlen = (size_t)c->words * 64 + TAB_W(K), tablen = 256 * (size_t)TAB_W(K);
-  float *mem = malloc((plane * nz + tablen + (size_t)n * (plane + rowlen)) * sizeof *mem);
+  float *mem = malloc((BSTRIDE(plane) * nz + tablen + (size_t)n * (plane + rowlen)) * sizeof *mem);
   uint8_t *flags = malloc((size_t)ny * (nz + (size_t)n));
   if (!mem || !flags) {
     free(mem);
     free(flags);
     return -1;
   }
-  float *b = mem, *tab = b + plane * nz, *scratch = tab + tablen;
+  float *b = mem, *tab = b + BSTRIDE(plane) * nz, *scratch = tab + tablen;
   x_table(w, K, tab);
   part_t parts[DENSITY_THREADS];
   for (int i = 0; i < n; i++) {
