@@ -63,6 +63,11 @@ static void cloud_run(renderer_t *r, job_t *j) {
     cloud_cells_t *out = buf[i % 2];
     cloud_step(cur, out, &cj->cfg.params);
     cur = out;
+    /* Without active cells the Kuromiya rules change nothing more: the rest is counted only. */
+    if (cj->cfg.params.rules == CLOUD_KUROMIYA && !cloud_cells_any(cur, CLOUD_ACT)) {
+      cur->step += cj->steps - 1 - i;
+      break;
+    }
   }
   d = density_grid_new(src->n);
   if (!d || cloud_density(cur, cj->cfg.radius, d->data) != 0)

@@ -91,6 +91,14 @@ int cloud_cell(const cloud_cells_t *c, cloud_field_t f, uint32_t x, uint32_t y, 
   return (int)(row[x / 64] >> (x % 64) & 1);
 }
 
+int cloud_cells_any(const cloud_cells_t *c, cloud_field_t f) {
+  const uint64_t *p = cloud_cells_plane(c, f);
+  uint64_t any = 0;
+  for (size_t i = 0, n = plane_words(c); i < n; i++)
+    any |= p[i];
+  return any != 0;
+}
+
 void cloud_cells_export(const cloud_cells_t *c, cloud_field_t f, uint8_t *out) {
   const uint64_t *p = cloud_cells_plane(c, f);
   uint32_t nx = c->n[0];

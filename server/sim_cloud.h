@@ -64,6 +64,8 @@ size_t cloud_cells_count(const cloud_cells_t *c);
 uint64_t *cloud_cells_plane(const cloud_cells_t *c, cloud_field_t f);
 /* Bit of plane 'f' at cell (x, y, z), which must be inside the grid. */
 int cloud_cell(const cloud_cells_t *c, cloud_field_t f, uint32_t x, uint32_t y, uint32_t z);
+/* Whether any cell of plane 'f' is set. */
+int cloud_cells_any(const cloud_cells_t *c, cloud_field_t f);
 /* Unpacks plane 'f' into one byte (0 or 1) per cell, x fastest, then y, then z. */
 void cloud_cells_export(const cloud_cells_t *c, cloud_field_t f, uint8_t *out);
 /* Packs one byte per cell (non-zero: 1) into plane 'f'. */

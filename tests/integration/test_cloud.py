@@ -141,6 +141,15 @@ def steps_match_reference(s):
         hum, act, cld = ref_step(hum, act, cld, n)
     _, att = get(c, "ref", "act")
     s.check(att == bytes(act), "three pipelined sim.step calls take six automaton steps")
+    # Once no cell is active the cells stay as they are, however many steps are asked for.
+    c.ok("cloud.set_cells", {"scene": "ref", "field": "act", "data": b64([0] * N)})
+    before = {f: get(c, "ref", f)[1] for f in ("hum", "cld")}
+    step0 = get(c, "ref", "cld")[0].get("step")
+    r, _ = c.ok("sim.step", {"scene": "ref", "steps": 100000}, timeout=60)
+    r, _ = get(c, "ref", "cld")
+    s.eq(r.get("step") - step0, 200000, "100000 steps of 2 automaton steps counted")
+    s.check(all(get(c, "ref", f)[1] == before[f] for f in ("hum", "cld")),
+            "without active cells the cells stay")
 
 
 @T

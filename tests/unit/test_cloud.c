@@ -13,6 +13,8 @@
 #include <string.h>
 
 #include "check.h"
+#include "proto.h"
+#include "scene.h"
 #include "sim_cloud.h"
 
 /* ---- The reference ---- */
@@ -397,6 +399,67 @@ static void test_blend(void) {
         target[1], target[2]);
 }
 
+/* Applies the merge patch 'json' to 's'; returns scene_patch's result with 'err'. */
+static int patch(scene_t *s, const char *json, scene_error_t *err) {
+  cJSON *p = cJSON_Parse(json);
+  int rc = scene_patch(s, p, err);
+  cJSON_Delete(p);
+  return rc;
+}
+
+/* The cloud in the scene model: compiled into the snapshot with its box and knobs, cells kept
+ * across unrelated changes and seeded afresh by grid, seed or init, the grid limit refused with
+ * -32003 and nothing changed, and scene_set_cloud publishing a new density. */
+static void test_scene_cloud(void) {
+  scene_error_t err;
+  scene_t *s = scene_create("c", NULL, &err);
+  CHECK(s && !s->cloud_cells && !s->snapshot->cloud.grid, "no cloud by default");
+  CHECK(patch(s,
+              "{\"cloud\": {\"enabled\": true, \"grid\": [20, 10, 8], \"origin\": [1, 2, 3], "
+              "\"voxel\": 0.5, \"density\": 3, \"samples\": 40}}",
+              &err) == 0,
+        "enable the cloud: %s", err.message);
+  const rvolume_t *v = &s->snapshot->cloud;
+  CHECK(v->grid && v->grid->dims[0] == 20 && v->grid->dims[1] == 10 && v->grid->dims[2] == 8,
+        "the snapshot shows a 20x10x8 density grid");
+  CHECK(v->source == VOLUME_GRID && v->min[0] == 1 && v->min[1] == 2 && v->min[2] == 3 &&
+            v->max[0] == 11 && v->max[1] == 7 && v->max[2] == 7,
+        "cloud box %g %g %g .. %g %g %g, want 1 2 3 .. 11 7 7", v->min[0], v->min[1], v->min[2],
+        v->max[0], v->max[1], v->max[2]);
+  CHECK(v->density == 3 && v->samples == 40 && v->albedo[0] > 0.9f, "density, samples, albedo");
+  cloud_cells_t *cells = s->cloud_cells;
+  uint64_t gen = s->cloud_gen;
+  CHECK(cells && gen != 0, "cells and a generation");
+  CHECK(patch(s, "{\"cloud\": {\"p_ext\": 0.5, \"density\": 5}}", &err) == 0, "patch knobs");
+  CHECK(s->cloud_cells == cells && s->cloud_gen == gen, "unrelated changes keep the cells");
+  CHECK(s->snapshot->cloud.density == 5, "the new density knob is compiled");
+  CHECK(patch(s, "{\"cloud\": {\"seed\": 2}}", &err) == 0, "new seed");
+  CHECK(s->cloud_cells != cells && s->cloud_gen != gen, "a new seed seeds fresh cells");
+  cells = s->cloud_cells;
+  gen = s->cloud_gen;
+  unsigned long version = s->version;
+  CHECK(patch(s, "{\"cloud\": {\"grid\": [300, 10, 8]}}", &err) != 0 && err.code == PROTO_E_LIMIT &&
+            strcmp(err.path, "cloud.grid") == 0,
+        "a grid over the limit: code %d path '%s'", err.code, err.path);
+  CHECK(patch(s, "{\"cloud\": {\"grid\": [20.5, 10, 8]}}", &err) != 0 &&
+            err.code == PROTO_E_INVALID_PARAMS && strcmp(err.path, "cloud.grid") == 0,
+        "a fractional grid: code %d path '%s'", err.code, err.path);
+  CHECK(s->cloud_cells == cells && s->cloud_gen == gen && s->version == version,
+        "refused patches change nothing");
+  scene_set_cloud_side(512);
+  CHECK(patch(s, "{\"cloud\": {\"grid\": [300, 2, 2]}}", &err) == 0,
+        "a raised limit admits the grid: %s", err.message);
+  scene_set_cloud_side(256);
+  density_grid_t *d = density_grid_new(s->cloud_cells->n);
+  d->data[0] = 7;
+  CHECK(scene_set_cloud(s, cloud_cells_ref(s->cloud_cells), d, 0) == 0, "scene_set_cloud");
+  CHECK(s->snapshot->cloud.grid == d && s->cloud_density == d, "the snapshot shows the new grid");
+  CHECK(patch(s, "{\"cloud\": {\"enabled\": false}}", &err) == 0 && !s->cloud_cells &&
+            !s->snapshot->cloud.grid && s->cloud_gen == 0,
+        "disabling drops the cloud");
+  scene_destroy(s);
+}
+
 int main(void) {
   test_stencil();
   test_kuromiya();
@@ -409,6 +472,7 @@ int main(void) {
   test_density((uint32_t[3]){48, 40, 37}, 6, 3); /* Large enough to be split among threads. */
   test_density_full();
   test_blend();
+  test_scene_cloud();
   printf("%d checks, %d failures\n", checks, failures);
   return failures != 0;
 }
