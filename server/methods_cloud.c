@@ -232,6 +232,16 @@ static void get_cells_m(call_t *call) {
   size_t n = cloud_cells_count(s->cloud_cells);
   int dens = strcmp(field, "density") == 0;
   size_t nbytes = dens ? 4 * n : n;
+  /* An answer over the connection's output limit would close the connection; refuse it. */
+  size_t sent = base64 ? proto_b64_encoded_len(nbytes) : nbytes;
+  if (sent + 4096 > call->srv->cfg.limits.output_bytes) {
+    call_error(call, PROTO_E_LIMIT, "field",
+               "%s: field: %zu bytes of %s are over the output limit of %zu bytes per "
+               "connection (limits.output_bytes)",
+               proto_err_message(PROTO_E_LIMIT), sent, field,
+               (size_t)call->srv->cfg.limits.output_bytes);
+    return;
+  }
   unsigned char *bytes = malloc(nbytes);
   if (!bytes) {
     call_error(call, PROTO_E_INTERNAL, NULL, "internal error: out of memory");
@@ -406,7 +416,7 @@ static const sch_field_t set_params[] = {
      .flags = SCH_REQUIRED},
     {0}};
 
-static const int get_errors[] = {PROTO_E_UNAUTHORIZED, PROTO_E_NOT_FOUND, 0};
+static const int get_errors[] = {PROTO_E_UNAUTHORIZED, PROTO_E_NOT_FOUND, PROTO_E_LIMIT, 0};
 static const int set_errors[] = {PROTO_E_UNAUTHORIZED, PROTO_E_NOT_FOUND, PROTO_E_BUSY, 0};
 
 #define OBJ(f)                                                                                     \

@@ -270,17 +270,22 @@ def grid_limit_config(s):
     d = mock.tempfile.mkdtemp(prefix="volfx-cloud-")
     path = os.path.join(d, "volfxd.json")
     with open(path, "w") as f:
-        f.write(json.dumps({"limits": {"cloud_side": 16}}))
+        f.write(json.dumps({"limits": {"cloud_side": 80, "output_bytes": 1 << 20}}))
     with mock.Server(s.bin, "--config", path) as srv:
         c = srv.connect()
         make(c, "lim", grid=(16, 16, 16))
         expect_error(s, c, "scene.set",
-                     {"scene": "lim", "path": "cloud.grid", "value": [17, 16, 16]}, E_LIMIT,
-                     "cloud.grid", "over a configured limit of 16")
+                     {"scene": "lim", "path": "cloud.grid", "value": [81, 16, 16]}, E_LIMIT,
+                     "cloud.grid", "over a configured limit of 80")
         s.eq(get(c, "lim", "cld")[0].get("dims"), [16, 16, 16], "the refused grid left the cells")
+        # 80³ f32 is 2 MB, over an output limit of 1 MiB: refused, the connection lives.
+        make(c, "big", grid=(80, 80, 80))
+        expect_error(s, c, "cloud.get_cells", {"scene": "big", "field": "density"}, E_LIMIT,
+                     "field", "a density over limits.output_bytes")
+        s.eq(len(get(c, "big", "hum")[1]), 512000, "the connection still answers")
         # A disabled cloud may keep a larger grid, but cannot be enabled with it.
         c.ok("scene.set", {"scene": "lim", "patch": {"cloud": {"enabled": False,
-                                                               "grid": [32, 16, 16]}}})
+                                                               "grid": [96, 16, 16]}}})
         expect_error(s, c, "scene.set", {"scene": "lim", "path": "cloud.enabled", "value": True},
                      E_LIMIT, "cloud.grid", "enabling a cloud over the limit")
         s.eq(c.ok("scene.get", {"scene": "lim", "path": "cloud.enabled"})[0], False,
