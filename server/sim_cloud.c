@@ -229,10 +229,8 @@ static inline uint64_t draw_mask(const cloud_cells_t *c, const cloud_params_t *p
   return m;
 }
 
-void cloud_cells_seed(cloud_cells_t *c, const cloud_params_t *p, double hum, double act) {
-  size_t nw = plane_words(c);
-  memset(c->hum, 0, 3 * nw * sizeof *c->hum);
-  c->step = 0;
+/* The seeding of cloud_cells_seed, built for each vector width (CLONES). */
+CLONES static void seed_cells(cloud_cells_t *c, const cloud_params_t *p, double hum, double act) {
   uint32_t bh = draw_base(p->seed, 0, CLOUD_DRAW_INIT_HUM);
   uint32_t ba = draw_base(p->seed, 0, CLOUD_DRAW_INIT_ACT);
   uint64_t th = cloud_threshold(hum), ta = cloud_threshold(act);
@@ -243,22 +241,27 @@ void cloud_cells_seed(cloud_cells_t *c, const cloud_params_t *p, double hum, dou
         continue;
       size_t r = ((size_t)z * c->n[1] + y) * c->words;
       for (uint32_t w = 0; w < c->words; w++) {
-        uint64_t h = 0, a = 0;
-        for (uint32_t b = 0; b < 64 && w * 64 + b < nx; b++) {
-          uint32_t x = w * 64 + b;
-          if (cloud_shape(p, x, y, z) <= 0)
-            continue;
-          uint32_t cell = x + nx * (y + c->n[1] * z);
-          if ((uint64_t)cell_hash(bh, cell) < th) {
-            h |= (uint64_t)1 << b;
-            if ((uint64_t)cell_hash(ba, cell) < ta)
-              a |= (uint64_t)1 << b;
-          }
+        uint32_t nb = nx - w * 64 < 64 ? nx - w * 64 : 64;
+        uint64_t inside = nb == 64 ? ~(uint64_t)0 : ((uint64_t)1 << nb) - 1;
+        if (p->nellipsoids > 0) {
+          inside = 0;
+          for (uint32_t b = 0; b < nb; b++)
+            if (cloud_shape(p, w * 64 + b, y, z) > 0)
+              inside |= (uint64_t)1 << b;
         }
+        if (!inside || !th)
+          continue;
+        uint64_t h = inside & draw_mask(c, p, bh, hum, th, 0, w, y, z);
         c->hum[r + w] = h;
-        c->act[r + w] = a;
+        c->act[r + w] = h && ta ? h & draw_mask(c, p, ba, act, ta, 0, w, y, z) : 0;
       }
     }
+}
+
+void cloud_cells_seed(cloud_cells_t *c, const cloud_params_t *p, double hum, double act) {
+  memset(c->hum, 0, 3 * plane_words(c) * sizeof *c->hum);
+  c->step = 0;
+  seed_cells(c, p, hum, act);
 }
 
 /* ---- The step ---- */
