@@ -168,7 +168,7 @@ static void job_free(cloud_job_t *cj) {
 
 /* Queues 'cj' as the scene's newest cloud job. Returns 0, or -1 (not queued, not freed). */
 static int job_submit(server_t *srv, scene_t *s, cloud_job_t *cj) {
-  if (worker_submit(srv->worker, &cj->job) != 0)
+  if (!srv->worker || worker_submit(srv->worker, &cj->job) != 0)
     return -1;
   cloud_link_unref(s->cloud_chain);
   s->cloud_chain = cloud_link_ref(cj->res);
@@ -356,7 +356,7 @@ static void set_cells_m(call_t *call) {
       cj->in = cloud_cells_ref(cells);
       cloud_link_unref(cj->prev);
       cj->prev = NULL;
-      if (worker_submit(call->srv->worker, &cj->job) != 0) {
+      if (!call->srv->worker || worker_submit(call->srv->worker, &cj->job) != 0) {
         job_free(cj);
         call_error(call, PROTO_E_BUSY, NULL, "%s: the render queue is full",
                    proto_err_message(PROTO_E_BUSY));
