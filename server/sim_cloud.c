@@ -404,47 +404,77 @@ static inline void axpy(float *restrict y, float a, const float *restrict x, uin
 typedef float v16 __attribute__((vector_size(64)));
 
 /*
- * o = the sum over k < 'm' (at least 1) of wk[k] × src[k], over 'n' floats. The sums of 64
- * outputs are kept in four registers across all of 'src', so each output is written once;
- * adding into 'o' tap by tap instead waits on a store and a load per tap.
+ * o[j] = the sum over k < 'm' of wk[k][j] × src[k], for the four output rows j, over 'n'
+ * floats. Four neighbouring outputs of a 1-D pass read almost the same source rows, so each
+ * source vector is loaded once for all four, and the sums stay in registers until written.
  */
-static inline void gather(float *restrict o, const float *const *src, const float *wk, int m,
-                          uint32_t n) {
+__attribute__((always_inline)) static inline void gather4(float *const *o, const float *const *src,
+                                                          const float (*wk)[4], int m, uint32_t n) {
   uint32_t i = 0;
-  for (; i + 64 <= n; i += 64) {
-    v16 a0 = {0}, a1 = {0}, a2 = {0}, a3 = {0};
-    for (int k = 0; k < m; k++) {
-      const float *p = src[k] + i;
-      float w = wk[k];
-      v16 x0, x1, x2, x3;
-      memcpy(&x0, p, sizeof x0);
-      memcpy(&x1, p + 16, sizeof x1);
-      memcpy(&x2, p + 32, sizeof x2);
-      memcpy(&x3, p + 48, sizeof x3);
-      a0 += w * x0;
-      a1 += w * x1;
-      a2 += w * x2;
-      a3 += w * x3;
-    }
-    memcpy(o + i, &a0, sizeof a0);
-    memcpy(o + i + 16, &a1, sizeof a1);
-    memcpy(o + i + 32, &a2, sizeof a2);
-    memcpy(o + i + 48, &a3, sizeof a3);
-  }
   for (; i + 16 <= n; i += 16) {
-    v16 a = {0};
+    v16 a0 = {0}, a1 = {0}, a2 = {0}, a3 = {0};
     for (int k = 0; k < m; k++) {
       v16 x;
       memcpy(&x, src[k] + i, sizeof x);
-      a += wk[k] * x;
+      a0 += wk[k][0] * x;
+      a1 += wk[k][1] * x;
+      a2 += wk[k][2] * x;
+      a3 += wk[k][3] * x;
     }
-    memcpy(o + i, &a, sizeof a);
+    memcpy(o[0] + i, &a0, sizeof a0);
+    memcpy(o[1] + i, &a1, sizeof a1);
+    memcpy(o[2] + i, &a2, sizeof a2);
+    memcpy(o[3] + i, &a3, sizeof a3);
   }
-  for (; i < n; i++) {
-    float a = 0;
-    for (int k = 0; k < m; k++)
-      a += wk[k] * src[k][i];
-    o[i] = a;
+  for (; i < n; i++)
+    for (int j = 0; j < 4; j++) {
+      float a = 0;
+      for (int k = 0; k < m; k++)
+        a += wk[k][j] * src[k][i];
+      o[j][i] = a;
+    }
+}
+
+/*
+ * One 1-D pass across rows: output row t (at out + t × 'ostride') is the sum over input rows u
+ * within K of t (at in + u × 'istride') whose flag fin[u × 'fstride'] is set, weighted by
+ * w[u - t + K]; 'count' rows, each 'nx' floats. Sets fout[t] (when not NULL) to whether row t
+ * got anything; rows that got nothing are written as zeros only when 'fout' is NULL. 'dummy'
+ * (nx floats) takes the outputs past the last row.
+ */
+__attribute__((always_inline)) static inline void
+pass_rows(float *out, size_t ostride, const float *in, size_t istride, const uint8_t *fin,
+          size_t fstride, uint8_t *fout, uint32_t count, const float *w, int K, uint32_t nx,
+          float *dummy) {
+  const float *src[2 * CLOUD_MAX_RADIUS + 4];
+  float wk[2 * CLOUD_MAX_RADIUS + 4][4];
+  for (uint32_t t = 0; t < count; t += 4) {
+    long lo = (long)t - K < 0 ? 0 : (long)t - K;
+    long hi = (long)t + 3 + K >= (long)count ? (long)count - 1 : (long)t + 3 + K;
+    int m = 0, got[4] = {0, 0, 0, 0};
+    for (long u = lo; u <= hi; u++) {
+      if (!fin[(size_t)u * fstride])
+        continue;
+      src[m] = in + (size_t)u * istride;
+      for (int j = 0; j < 4; j++) {
+        long d = u - ((long)t + j);
+        int inside = d >= -K && d <= K && t + j < count;
+        wk[m][j] = inside ? w[d + K] : 0;
+        got[j] |= inside;
+      }
+      m++;
+    }
+    float *o[4];
+    for (int j = 0; j < 4; j++) {
+      o[j] = t + j < count ? out + (size_t)(t + j) * ostride : dummy;
+      if (fout && t + j < count)
+        fout[t + j] = (uint8_t)got[j];
+    }
+    if (m)
+      gather4(o, src, (const float(*)[4])wk, m, nx);
+    else if (!fout)
+      for (int j = 0; j < 4; j++)
+        memset(o[j], 0, nx * sizeof *o[j]);
   }
 }
 
@@ -495,23 +525,12 @@ CLONES static int plane_xy(const cloud_cells_t *c, uint32_t z, const float *rest
     }
     memcpy(a + (size_t)y * nx, row + K, nx * sizeof *row);
   }
-  for (uint32_t t = 0; t < ny; t++) {
-    const float *src[2 * CLOUD_MAX_RADIUS + 1];
-    float wk[2 * CLOUD_MAX_RADIUS + 1];
-    int m = 0;
-    for (int d = -K; d <= K; d++) {
-      long y = (long)t + d;
-      if (y >= 0 && y < (long)ny && fa[y]) {
-        src[m] = a + (size_t)y * nx;
-        wk[m++] = w[d + K];
-      }
-    }
-    fb[t] = m > 0;
-    if (m) {
-      gather(b + (size_t)t * nx, src, wk, m, nx);
-      any = 1;
-    }
-  }
+  for (uint32_t y = 0; y < ny; y++)
+    any |= fa[y];
+  if (any)
+    pass_rows(b, nx, a, nx, fa, 1, fb, ny, w, K, nx, row);
+  else
+    memset(fb, 0, ny);
   return any;
 }
 
@@ -525,27 +544,12 @@ CLONES static int plane_xy(const cloud_cells_t *c, uint32_t z, const float *rest
  * is handled together so that the 2K + 1 rows read for each output row stay in cache. */
 CLONES static void pass_z(const cloud_cells_t *c, const float *restrict w, int K,
                           const float *restrict b, const uint8_t *restrict fb, float *restrict out,
-                          uint32_t y0, uint32_t y1) {
+                          uint32_t y0, uint32_t y1, float *dummy) {
   uint32_t nx = c->n[0], ny = c->n[1], nz = c->n[2];
   size_t plane = (size_t)nx * ny;
   for (uint32_t y = y0; y < y1; y++)
-    for (uint32_t t = 0; t < nz; t++) {
-      const float *src[2 * CLOUD_MAX_RADIUS + 1];
-      float wk[2 * CLOUD_MAX_RADIUS + 1];
-      int m = 0;
-      for (int d = -K; d <= K; d++) {
-        long z = (long)t + d;
-        if (z >= 0 && z < (long)nz && fb[z * ny + y]) {
-          src[m] = b + (size_t)z * BSTRIDE(plane) + (size_t)y * nx;
-          wk[m++] = w[d + K];
-        }
-      }
-      float *o = out + t * plane + (size_t)y * nx;
-      if (m)
-        gather(o, src, wk, m, nx);
-      else
-        memset(o, 0, nx * sizeof *o);
-    }
+    pass_rows(out + (size_t)y * nx, plane, b + (size_t)y * nx, BSTRIDE(plane), fb + y, ny, NULL, nz,
+              w, K, nx, dummy);
 }
 
 #define DENSITY_THREADS 4 /* At most; fewer on fewer cores or small grids. */
@@ -574,7 +578,7 @@ static void *part_xy(void *arg) {
 
 static void *part_z(void *arg) {
   part_t *p = arg;
-  pass_z(p->c, p->w, p->K, p->b, p->flags, p->out, p->y0, p->y1);
+  pass_z(p->c, p->w, p->K, p->b, p->flags, p->out, p->y0, p->y1, p->row);
   return NULL;
 }
 
