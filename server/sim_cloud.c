@@ -6,11 +6,13 @@
  * The random draws of the Dobashi rules hash (seed, step, draw, cell), so the result does not
  * depend on the packing, and rows outside every ellipsoid of the supply are skipped.
  *
- * The density is the sum of a separable truncated Gaussian around every cloud cell, computed
- * plane by plane: the x pass adds the kernel at every set bit of a row, the y pass adds each
- * non-empty row of that into the rows within reach, and the z pass adds the plane into the
- * planes within reach of the output. Every inner loop is a contiguous a × x + y, which the
- * compiler vectorises (this file is built with -O3; see server/CMakeLists.txt).
+ * The density is the sum of a separable truncated Gaussian around every cloud cell, in three
+ * 1-D passes that skip empty rows: the x pass adds, for each non-zero byte of a row of cells,
+ * the kernel summed over that byte's bits (a table); the y pass, plane by plane, and then the z
+ * pass, row by row, sum the input rows within reach into four output rows at a time. The loops
+ * run over contiguous floats in 16-wide vectors (this file is built with -O3, see
+ * server/CMakeLists.txt, and the hot functions for AVX-512 and AVX2 too), and the planes and
+ * rows are shared among up to four threads.
  */
 #include "sim_cloud.h"
 
