@@ -16,6 +16,7 @@ import os
 import random
 import struct
 import sys
+import time
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 import mock  # noqa: E402
@@ -348,6 +349,22 @@ def snapshot_carries_cells(s):
     expect_error(s, c, "scene.load", {"scene": "snap", "file": "short.snap"}, E_PARAMS, "file",
                  "a truncated cloud section")
     s.check(get(c, "snap", "cld")[1] == before, "the refused load left the cells")
+
+
+@T
+def play_steps_the_cloud(s):
+    c = s.srv.connect()
+    make(c, "play", grid=(32, 32, 32), rules="dobashi", wind=0.5)
+    step0 = get(c, "play", "cld")[0].get("step")
+    c.ok("sim.play", {"scene": "play", "rate": 60})
+    time.sleep(0.6)
+    c.ok("sim.pause", {"scene": "play"})
+    time.sleep(0.3)  # A job still running when paused lands after the pause.
+    r, _ = get(c, "play", "cld")
+    s.check(r.get("step", 0) > step0, "sim.play steps the cloud", (step0, r.get("step")))
+    frame = c.ok("scene.get", {"scene": "play", "path": "sim.frame"})[0]
+    s.check(r.get("step", 0) <= frame, "the cloud never runs ahead of the clock",
+            (r.get("step"), frame))
 
 
 @T
