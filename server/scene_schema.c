@@ -627,7 +627,7 @@ static const sch_field_t cloud_fields[] = {
              "takes 9 cells at 64 cells along the longest side, scaled with the grid.",
      .unit = "cells",
      .min = 0,
-     .max = 128},
+     .max = 64},
     {.name = "seed",
      .type = SCH_INTEGER,
      .desc = "Seed of the initial cells and of the dobashi draws; changing it seeds fresh cells.",
