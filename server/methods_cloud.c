@@ -365,8 +365,10 @@ static void set_cells_m(call_t *call) {
     }
     if (scene_set_cloud(s, cells, density_grid_ref(s->cloud_density), 1) != 0) {
       density_grid_unref(s->cloud_density);
-      if (cj)
-        cj->call = NULL; /* Dropped when done: its generation is not the scene's. */
+      if (cj) {
+        cj->call = NULL; /* Dropped when done: generation 0 is never a cloud's. */
+        cj->gen = 0;
+      }
       call_error(call, PROTO_E_INTERNAL, NULL, "internal error: out of memory");
       goto out;
     }
