@@ -71,6 +71,7 @@ int main(int argc, char **argv) {
   }
   scene_set_data_dir(s->cfg.data_dir[0] ? s->cfg.data_dir : NULL);
   scene_set_volume_limit(s->cfg.limits.cloud_side);
+  scene_set_cloud_side(s->cfg.limits.cloud_side);
 
   uint64_t t0 = now_ns();
   renderer_opts_t ropts = {.device = s->cfg.device[0] ? s->cfg.device : NULL,

@@ -7,6 +7,7 @@
 #include <string.h>
 
 #include "dispatch.h"
+#include "cloud.h"
 #include "fluid.h"
 #include "frames.h"
 
@@ -142,8 +143,18 @@ static void sim_step(call_t *call) {
   const cJSON *dt = cJSON_GetObjectItem(call->params, "dt");
   double step_dt = dt ? dt->valuedouble : scene_dt(e->scene);
   scene_advance(e->scene, steps, step_dt);
-  /* The fluid steps on the worker; the answer waits for it. */
-  if (fluid_wants_step(e)) {
+  /* The cloud and the fluid step on the worker, in that order; the answer waits for the last. */
+  int fluid = fluid_wants_step(e);
+  if (cloud_wants_step(e)) {
+    if (cloud_submit_step(call->srv, e, steps, fluid ? NULL : call) != 0) {
+      call_error(call, PROTO_E_BUSY, NULL, "%s: the render queue is full",
+                 proto_err_message(PROTO_E_BUSY));
+      return;
+    }
+    if (!fluid)
+      return;
+  }
+  if (fluid) {
     if (fluid_submit_step(call->srv, e, steps, step_dt, call) != 0)
       call_error(call, PROTO_E_BUSY, NULL, "%s: the render queue is full",
                  proto_err_message(PROTO_E_BUSY));
@@ -167,6 +178,8 @@ static void on_play(uv_timer_t *t) {
     /* One fluid job at a time per scene: while one runs, the fluid skips these steps. */
     if (fluid_wants_step(e) && !fluid_busy(e))
       fluid_submit_step(e->srv, e, (unsigned)n, scene_dt(e->scene), NULL);
+    if (cloud_wants_step(e) && !cloud_busy(e))
+      cloud_submit_step(e->srv, e, (unsigned)n, NULL);
   }
 }
 

@@ -794,8 +794,178 @@ static void compile_fluid(const cJSON *doc, particles_t *p, render_scene_t *rs) 
   rs->fluid.roughness = (float)get(mat, "roughness")->valuedouble;
 }
 
-/* Builds the snapshot of a validated document, loading meshes; NULL with 'err' set. */
-static render_scene_t *compile(const cJSON *doc, particles_t *particles, scene_error_t *err) {
+/* ---- The cloud ---- */
+
+static uint32_t g_cloud_side = 256;
+/* Generations of cloud cells, unique across scenes so that a job of a deleted scene can never
+ * match a new scene of the same name. Loop thread only. */
+static uint64_t g_cloud_gen;
+
+void scene_set_cloud_side(uint32_t side) {
+  g_cloud_side = side < 1 ? 1 : side > CLOUD_MAX_SIDE ? CLOUD_MAX_SIDE : side;
+}
+
+cloud_link_t *cloud_link_new(void) {
+  cloud_link_t *l = calloc(1, sizeof *l);
+  if (l)
+    atomic_init(&l->refs, 1);
+  return l;
+}
+
+cloud_link_t *cloud_link_ref(cloud_link_t *l) {
+  if (l)
+    atomic_fetch_add(&l->refs, 1);
+  return l;
+}
+
+void cloud_link_unref(cloud_link_t *l) {
+  if (l && atomic_fetch_sub(&l->refs, 1) == 1) {
+    cloud_cells_unref(l->cells);
+    density_grid_unref(l->density);
+    free(l);
+  }
+}
+
+/* The cloud's checks: integral grid sides, within limits.cloud_side when enabled; ellipsoid
+ * radii above 0. */
+static int check_cloud(const cJSON *doc, scene_error_t *err) {
+  const cJSON *cloud = get(doc, "cloud");
+  double n[3];
+  vec3d(get(cloud, "grid"), n);
+  for (int i = 0; i < 3; i++) {
+    if (n[i] != floor(n[i]))
+      return set_err(err, PROTO_E_INVALID_PARAMS, "cloud.grid",
+                     "cloud.grid: %g is not a whole number of cells", n[i]);
+    /* A disabled cloud has no cells, so only an enabled one is held to the limit. */
+    if (n[i] > g_cloud_side && cJSON_IsTrue(get(cloud, "enabled")))
+      return set_err(err, PROTO_E_LIMIT, "cloud.grid",
+                     "cloud.grid: %g cells is over the limit of %u per side (limits.cloud_side)",
+                     n[i], g_cloud_side);
+  }
+  int i = 0;
+  for (const cJSON *e = get(cloud, "ellipsoids")->child; e; e = e->next, i++) {
+    double r[3];
+    vec3d(get(e, "radii"), r);
+    if (!(r[0] > 0 && r[1] > 0 && r[2] > 0)) {
+      char p[64];
+      snprintf(p, sizeof p, "cloud.ellipsoids.%d.radii", i);
+      return set_err(err, PROTO_E_INVALID_PARAMS, p, "%s: every radius must be above 0", p);
+    }
+  }
+  return 0;
+}
+
+/* The cloud settings of validated 'doc'. Returns 0, or -1 when the cloud is disabled. */
+static int cloud_config_of(const cJSON *doc, scene_cloud_t *c) {
+  const cJSON *cloud = get(doc, "cloud");
+  memset(c, 0, sizeof *c);
+  double n[3], origin[3];
+  vec3d(get(cloud, "grid"), n);
+  vec3d(get(cloud, "origin"), origin);
+  double voxel = get(cloud, "voxel")->valuedouble;
+  double longest = 0;
+  for (int i = 0; i < 3; i++) {
+    c->n[i] = (uint32_t)n[i];
+    longest = fmax(longest, n[i]);
+  }
+  cloud_params_t *p = &c->params;
+  p->rules =
+      strcmp(get(cloud, "rules")->valuestring, "dobashi") == 0 ? CLOUD_DOBASHI : CLOUD_KUROMIYA;
+  p->p_ext = get(cloud, "p_ext")->valuedouble;
+  p->p_hum = get(cloud, "p_hum")->valuedouble;
+  p->p_act = get(cloud, "p_act")->valuedouble;
+  p->wind = get(cloud, "wind")->valuedouble;
+  p->seed = (uint64_t)get(cloud, "seed")->valuedouble;
+  for (const cJSON *e = get(cloud, "ellipsoids")->child; e && p->nellipsoids < CLOUD_MAX_ELLIPSOIDS;
+       e = e->next) {
+    double ce[3], r[3];
+    vec3d(get(e, "center"), ce);
+    vec3d(get(e, "radii"), r);
+    cloud_ellipsoid_t *el = &p->ellipsoids[p->nellipsoids++];
+    /* Cell (i, j, k) has its centre at origin + (i + 0.5) voxel. */
+    for (int i = 0; i < 3; i++) {
+      el->center[i] = (float)((ce[i] - origin[i]) / voxel - 0.5);
+      el->radii[i] = (float)(r[i] / voxel);
+    }
+  }
+  double radius = get(cloud, "metaball_radius")->valuedouble;
+  c->radius = radius > 0 ? radius : 9.0 * longest / 64;
+  c->keep = (float)get(cloud, "smoothing")->valuedouble;
+  c->steps_per_frame = (unsigned)get(cloud, "steps_per_frame")->valuedouble;
+  const cJSON *init = get(cloud, "init");
+  c->init_hum = get(init, "hum")->valuedouble;
+  c->init_act = get(init, "act")->valuedouble;
+  return cJSON_IsTrue(get(cloud, "enabled")) ? 0 : -1;
+}
+
+int scene_cloud_config(const scene_t *s, scene_cloud_t *out) {
+  return cloud_config_of(s->doc, out);
+}
+
+/* Whether member 'name' of the clouds of 'a' and 'b' are equal. */
+static int cloud_same(const cJSON *a, const cJSON *b, const char *name) {
+  return cJSON_Compare(get(get(a, "cloud"), name), get(get(b, "cloud"), name), 1);
+}
+
+/*
+ * The cells and density 'doc' gives the scene: none when the cloud is disabled, the scene's
+ * own when it was enabled already with the same grid, seed and init, and otherwise freshly
+ * seeded cells with no cloud (so a zero density). Sets '*seeded' for fresh cells. Returns 0 or
+ * -1 on OOM.
+ */
+static int cloud_prepare(const scene_t *s, const cJSON *doc, cloud_cells_t **cells,
+                         density_grid_t **density, int *seeded, scene_error_t *err) {
+  scene_cloud_t c;
+  *cells = NULL;
+  *density = NULL;
+  *seeded = 0;
+  if (cloud_config_of(doc, &c) != 0)
+    return 0;
+  if (s->doc && s->cloud_cells && cloud_same(s->doc, doc, "grid") &&
+      cloud_same(s->doc, doc, "seed") && cloud_same(s->doc, doc, "init")) {
+    *cells = cloud_cells_ref(s->cloud_cells);
+    *density = density_grid_ref(s->cloud_density);
+    return 0;
+  }
+  *cells = cloud_cells_new(c.n);
+  *density = *cells ? density_grid_new(c.n) : NULL;
+  if (!*density) {
+    cloud_cells_unref(*cells);
+    *cells = NULL;
+    return set_err(err, PROTO_E_INTERNAL, "", "out of memory for a %ux%ux%u cloud", c.n[0], c.n[1],
+                   c.n[2]);
+  }
+  cloud_cells_seed(*cells, &c.params, c.init_hum, c.init_act);
+  *seeded = 1;
+  return 0;
+}
+
+/* Fills rs->cloud from the document, showing 'density' (a reference is taken); no cloud when
+ * 'density' is NULL. */
+static void compile_cloud(const cJSON *doc, density_grid_t *density, render_scene_t *rs) {
+  memset(&rs->cloud, 0, sizeof rs->cloud);
+  if (!density)
+    return;
+  const cJSON *cloud = get(doc, "cloud");
+  double n[3], origin[3];
+  vec3d(get(cloud, "grid"), n);
+  vec3d(get(cloud, "origin"), origin);
+  double voxel = get(cloud, "voxel")->valuedouble;
+  rs->cloud.source = VOLUME_GRID;
+  for (int i = 0; i < 3; i++) {
+    rs->cloud.min[i] = (float)origin[i];
+    rs->cloud.max[i] = (float)(origin[i] + n[i] * voxel);
+  }
+  rs->cloud.density = (float)get(cloud, "density")->valuedouble;
+  vec3f(get(cloud, "albedo"), rs->cloud.albedo);
+  rs->cloud.samples = (int)get(cloud, "samples")->valuedouble;
+  rs->cloud.grid = density_grid_ref(density);
+}
+
+/* Builds the snapshot of a validated document showing the cloud density 'cloud', loading meshes
+ * and volume files; NULL with 'err' set. */
+static render_scene_t *compile(const cJSON *doc, particles_t *particles, density_grid_t *cloud,
+                               scene_error_t *err) {
   render_scene_t *rs = calloc(1, sizeof *rs);
   if (!rs) {
     set_err(err, PROTO_E_INTERNAL, "", "out of memory");
@@ -867,6 +1037,7 @@ static render_scene_t *compile(const cJSON *doc, particles_t *particles, scene_e
     return NULL;
   }
   compile_fluid(doc, particles, rs);
+  compile_cloud(doc, cloud, rs);
   if (compile_volumes(doc, rs, err) != 0) {
     render_scene_unref(rs);
     return NULL;
@@ -884,7 +1055,7 @@ static int prepare(cJSON *doc, scene_error_t *err) {
   if (sch_validate(&scene_schema, doc, "", &se) != 0)
     return set_err(err, PROTO_E_INVALID_PARAMS, se.path, "%s", se.message);
   if (check_cross(doc, err) != 0 || check_waves(doc, err) != 0 || check_volumes(doc, err) != 0 ||
-      check_fluid(doc, err) != 0)
+      check_fluid(doc, err) != 0 || check_cloud(doc, err) != 0)
     return -1;
   double now = get(get(doc, "sim"), "time")->valuedouble;
   const sch_field_t *wf = wave_fields();
@@ -895,13 +1066,17 @@ static int prepare(cJSON *doc, scene_error_t *err) {
 
 /*
  * Makes 'doc' (owned, taken in every case) the scene's document if it is valid. A new value of
- * fluid.initial (or the first document) replaces the particles by its blocks.
+ * fluid.initial (or the first document) replaces the particles by its blocks; a cloud newly
+ * enabled, or with a new grid, seed or init, gets freshly seeded cells.
  */
 static int commit(scene_t *s, cJSON *doc, scene_error_t *err) {
   particles_t *particles = s->particles;
   int reseed = 0;
+  cloud_cells_t *cells = NULL;
+  density_grid_t *density = NULL;
+  int seeded = 0;
   render_scene_t *rs = NULL;
-  if (prepare(doc, err) != 0)
+  if (prepare(doc, err) != 0 || cloud_prepare(s, doc, &cells, &density, &seeded, err) != 0)
     goto fail;
   const cJSON *init = get(get(doc, "fluid"), "initial");
   if (!s->doc || !cJSON_Compare(init, get(get(s->doc, "fluid"), "initial"), 1)) {
@@ -912,7 +1087,7 @@ static int commit(scene_t *s, cJSON *doc, scene_error_t *err) {
     reseed = 1;
   }
   cJSON_SetNumberValue(get(get(doc, "fluid"), "count"), (particles ? (double)particles->count : 0));
-  rs = compile(doc, particles, err);
+  rs = compile(doc, particles, density, err);
   if (!rs)
     goto fail;
   cJSON_Delete(s->doc);
@@ -925,12 +1100,24 @@ static int commit(scene_t *s, cJSON *doc, scene_error_t *err) {
     s->particles = particles;
     s->particles_epoch++;
   }
+  cloud_cells_unref(s->cloud_cells);
+  density_grid_unref(s->cloud_density);
+  s->cloud_cells = cells;
+  s->cloud_density = density;
+  if (seeded || !cells) {
+    /* Jobs in flight stepped other cells: their results are dropped. */
+    s->cloud_gen = cells ? ++g_cloud_gen : 0;
+    cloud_link_unref(s->cloud_chain);
+    s->cloud_chain = NULL;
+  }
   cache_prune();
   grid_cache_prune();
   return 0;
 fail:
   if (reseed)
     particles_unref(particles);
+  cloud_cells_unref(cells);
+  density_grid_unref(density);
   cJSON_Delete(doc);
   cache_prune();
   grid_cache_prune();
@@ -971,6 +1158,9 @@ void scene_destroy(scene_t *s) {
     return;
   render_scene_unref(s->snapshot);
   particles_unref(s->particles);
+  cloud_cells_unref(s->cloud_cells);
+  density_grid_unref(s->cloud_density);
+  cloud_link_unref(s->cloud_chain);
   cJSON_Delete(s->doc);
   free(s);
   cache_prune();
@@ -1225,6 +1415,29 @@ int scene_set_particles(scene_t *s, particles_t *p) {
   particles_unref(s->particles);
   s->particles = p;
   cJSON_SetNumberValue(get(get(s->doc, "fluid"), "count"), (p ? (double)p->count : 0));
+  render_scene_unref(s->snapshot);
+  s->snapshot = rs;
+  return 0;
+}
+
+int scene_set_cloud(scene_t *s, cloud_cells_t *cells, density_grid_t *density, int replaced) {
+  const cJSON *sim = get(s->doc, "sim");
+  render_scene_t *rs =
+      snapshot_advanced(s->snapshot, s->doc, s->particles, (uint64_t)get(sim, "frame")->valuedouble,
+                        get(sim, "time")->valuedouble);
+  if (!rs)
+    return -1;
+  density_grid_unref(rs->cloud.grid);
+  compile_cloud(s->doc, density, rs);
+  cloud_cells_unref(s->cloud_cells);
+  density_grid_unref(s->cloud_density);
+  s->cloud_cells = cells;
+  s->cloud_density = density;
+  if (replaced) {
+    s->cloud_gen = ++g_cloud_gen;
+    cloud_link_unref(s->cloud_chain);
+    s->cloud_chain = NULL;
+  }
   render_scene_unref(s->snapshot);
   s->snapshot = rs;
   return 0;

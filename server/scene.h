@@ -12,6 +12,35 @@
 
 #include "render_scene.h"
 #include "schema.h"
+#include "sim_cloud.h"
+
+/*
+ * The outcome of one cloud job (methods_cloud.c), shared by the job and the scene: a job queued
+ * behind another of the same scene starts from the cells and density its predecessor left
+ * here, since the scene has not seen them yet when it is submitted. Filled on the worker
+ * before the job is answered, read only after that.
+ */
+typedef struct cloud_link {
+  atomic_int refs;
+  int ok;                  /* Set once 'cells' and 'density' hold the result. */
+  cloud_cells_t *cells;    /* References. */
+  density_grid_t *density; /* The smoothed density shown. */
+} cloud_link_t;
+
+cloud_link_t *cloud_link_new(void);
+cloud_link_t *cloud_link_ref(cloud_link_t *l);
+/* Drops a reference; NULL is fine. */
+void cloud_link_unref(cloud_link_t *l);
+
+/* The cloud settings of a validated document, in cells (ellipsoids converted). */
+typedef struct scene_cloud {
+  cloud_params_t params;
+  uint32_t n[3];
+  double radius;            /* Metaball radius in cells, 0 resolved. */
+  float keep;               /* smoothing */
+  unsigned steps_per_frame; /* Automaton steps per simulation step. */
+  double init_hum, init_act;
+} scene_cloud_t;
 
 typedef struct scene {
   char name[64];
@@ -22,6 +51,12 @@ typedef struct scene {
   uint64_t particles_epoch; /* From 1; counts replacements of the particles from outside the
                                simulation (fluid.initial, fluid.set_particles): a fluid step
                                started in an earlier epoch is dropped. */
+  /* The cloud: its cells and shown density (references), NULL when cloud.enabled is false. */
+  cloud_cells_t *cloud_cells;
+  density_grid_t *cloud_density;
+  uint64_t cloud_gen;        /* Unique among all scenes; changes when the cells are replaced
+                                (seeded, set by a client, loaded), not when stepped. */
+  cloud_link_t *cloud_chain; /* The last cloud job in flight, or NULL. */
 } scene_t;
 
 typedef struct scene_error {
@@ -71,6 +106,20 @@ void scene_advance(scene_t *s, unsigned steps, double dt);
  * with nothing changed.
  */
 int scene_set_particles(scene_t *s, particles_t *p);
+
+/* The limit on each side of the cloud grid (limits.cloud_side; 256 until set). */
+void scene_set_cloud_side(uint32_t side);
+
+/* The cloud settings of the scene's document. Returns 0, or -1 when the cloud is disabled. */
+int scene_cloud_config(const scene_t *s, scene_cloud_t *out);
+
+/*
+ * Makes 'cells' and 'density' (references taken; both of the grid's dimensions) the cloud's,
+ * with a fresh snapshot showing 'density'. 'replaced' marks the cells as new (a client set
+ * them): cloud_gen changes, so results of jobs in flight are dropped. Returns 0, or -1 on OOM
+ * with nothing changed.
+ */
+int scene_set_cloud(scene_t *s, cloud_cells_t *cells, density_grid_t *density, int replaced);
 
 /* Convenience reads of the validated document. */
 double scene_dt(const scene_t *s);

@@ -1,12 +1,14 @@
 /*
  * scene.save and scene.load: snapshots of a scene in the data directory. A snapshot is one
  * JSON header line, {"volfx_snapshot": 1, "scene": {...}, "sections": [...]}, followed by the
- * binary sections it lists (none yet: simulation state that is not in the document will go
- * there). Files are written atomically (temporary file, fsync, rename, fsync of the directory)
- * and all file I/O runs on libuv's thread pool, never on the loop thread.
+ * binary sections it lists, each {"name", "bytes", ...} and exactly 'bytes' long, in order:
+ * simulation state that is not in the document (the cloud's cells and density). Files are written
+ * atomically (temporary file, fsync, rename, fsync of the directory) and all file I/O runs on
+ * libuv's thread pool, never on the loop thread.
  */
 #include <errno.h>
 #include <fcntl.h>
+#include <math.h>
 #include <libgen.h>
 #include <limits.h>
 #include <stdio.h>
@@ -32,7 +34,111 @@ typedef struct snap_work {
   size_t len;
   int err; /* errno of the failed step, or 0. */
   const char *step;
+  /* The cloud section: save writes these (references) after the header; load reads them. */
+  cloud_cells_t *cells;
+  density_grid_t *density;
+  char bad[160]; /* load: why the sections are refused, "" when they are fine. */
 } snap_work_t;
+
+/* ---- The cloud section: hum, act and cld as packed little-endian 64-bit words (rows of
+ * ceil(nx / 64) words, x fastest, then y, then z), then the density as little-endian f32. ---- */
+
+static size_t cloud_section_bytes(const cloud_cells_t *c) {
+  return 3 * 8 * (size_t)c->words * c->n[1] * c->n[2] + 4 * cloud_cells_count(c);
+}
+
+static void put_le(unsigned char *p, uint64_t v, int n) {
+  for (int i = 0; i < n; i++)
+    p[i] = (unsigned char)(v >> (8 * i));
+}
+
+static uint64_t get_le(const unsigned char *p, int n) {
+  uint64_t v = 0;
+  for (int i = 0; i < n; i++)
+    v |= (uint64_t)p[i] << (8 * i);
+  return v;
+}
+
+/* Thread pool: the section's bytes, or NULL on OOM. */
+static unsigned char *cloud_section(const cloud_cells_t *c, const density_grid_t *d) {
+  size_t nw = (size_t)c->words * c->n[1] * c->n[2], n = cloud_cells_count(c);
+  unsigned char *buf = malloc(cloud_section_bytes(c)), *p = buf;
+  if (!buf)
+    return NULL;
+  const uint64_t *planes[3] = {c->hum, c->act, c->cld};
+  for (int k = 0; k < 3; k++)
+    for (size_t i = 0; i < nw; i++, p += 8)
+      put_le(p, planes[k][i], 8);
+  for (size_t i = 0; i < n; i++, p += 4) {
+    uint32_t u;
+    memcpy(&u, &d->data[i], 4);
+    put_le(p, u, 4);
+  }
+  return buf;
+}
+
+/*
+ * Thread pool: the cloud section described by 'sec' from 'bytes' ('len' of them), checked:
+ * dims within the largest grid, the byte count, bits beyond nx clear, densities finite and not
+ * negative. Fills w->cells and w->density, or w->bad.
+ */
+static void cloud_unsection(snap_work_t *w, const cJSON *sec, const unsigned char *bytes,
+                            size_t len) {
+  const cJSON *dims = cJSON_GetObjectItem(sec, "dims");
+  const cJSON *step = cJSON_GetObjectItem(sec, "step");
+  uint32_t n[3];
+  for (int i = 0; i < 3; i++) {
+    const cJSON *v = cJSON_GetArrayItem(dims, i);
+    if (!cJSON_IsArray(dims) || cJSON_GetArraySize(dims) != 3 || !cJSON_IsNumber(v) ||
+        v->valuedouble < 1 || v->valuedouble > CLOUD_MAX_SIDE ||
+        v->valuedouble != (uint32_t)v->valuedouble) {
+      snprintf(w->bad, sizeof w->bad, "the cloud section's dims are not 3 sides in 1..%d",
+               CLOUD_MAX_SIDE);
+      return;
+    }
+    n[i] = (uint32_t)v->valuedouble;
+  }
+  if (!cJSON_IsNumber(step) || step->valuedouble < 0 || step->valuedouble > 9007199254740992.0) {
+    snprintf(w->bad, sizeof w->bad, "the cloud section's step is not a count");
+    return;
+  }
+  w->cells = cloud_cells_new(n);
+  w->density = density_grid_new(n);
+  if (!w->cells || !w->density) {
+    snprintf(w->bad, sizeof w->bad, "out of memory for the cloud");
+    return;
+  }
+  if (len != cloud_section_bytes(w->cells)) {
+    snprintf(w->bad, sizeof w->bad, "the cloud section has %zu bytes, not %zu", len,
+             cloud_section_bytes(w->cells));
+    return;
+  }
+  w->cells->step = (uint64_t)step->valuedouble;
+  size_t W = w->cells->words, rows = (size_t)n[1] * n[2], count = cloud_cells_count(w->cells);
+  uint64_t last = n[0] % 64 ? ((uint64_t)1 << (n[0] % 64)) - 1 : ~(uint64_t)0;
+  uint64_t *planes[3] = {w->cells->hum, w->cells->act, w->cells->cld};
+  const unsigned char *p = bytes;
+  for (int k = 0; k < 3; k++)
+    for (size_t r = 0; r < rows; r++)
+      for (size_t i = 0; i < W; i++, p += 8) {
+        uint64_t v = get_le(p, 8);
+        if (i == W - 1 && (v & ~last)) {
+          snprintf(w->bad, sizeof w->bad, "the cloud section has cells beyond the grid");
+          return;
+        }
+        planes[k][r * W + i] = v;
+      }
+  for (size_t i = 0; i < count; i++, p += 4) {
+    uint32_t u = (uint32_t)get_le(p, 4);
+    float x;
+    memcpy(&x, &u, 4);
+    if (!isfinite(x) || x < 0) {
+      snprintf(w->bad, sizeof w->bad, "the cloud section has a density that is %g", x);
+      return;
+    }
+    w->density->data[i] = x;
+  }
+}
 
 static int write_all(int fd, const char *p, size_t n) {
   while (n) {
@@ -58,7 +164,23 @@ static void save_work(uv_work_t *req) {
     w->step = "create";
     return;
   }
-  if (write_all(fd, w->text, w->len) != 0 || fsync(fd) != 0) {
+  unsigned char *sec = NULL;
+  if (w->cells) {
+    sec = cloud_section(w->cells, w->density);
+    if (!sec) {
+      w->err = ENOMEM;
+      w->step = "encode";
+      close(fd);
+      unlink(tmp);
+      return;
+    }
+  }
+  int bad = write_all(fd, w->text, w->len) != 0 ||
+            (sec && write_all(fd, (const char *)sec, cloud_section_bytes(w->cells)) != 0);
+  free(sec);
+  if (w->cells)
+    w->len += cloud_section_bytes(w->cells);
+  if (bad || fsync(fd) != 0) {
     w->err = errno;
     w->step = "write";
     close(fd);
@@ -95,6 +217,8 @@ static void save_done(uv_work_t *req, int status) {
     call_result(call, r);
   }
   free(w->text);
+  cloud_cells_unref(w->cells);
+  density_grid_unref(w->density);
   free(w);
 }
 
@@ -131,10 +255,25 @@ static void scene_save(call_t *call) {
   cJSON_AddNumberToObject(head, "volfx_snapshot", SNAPSHOT_VERSION);
   cJSON_AddStringToObject(head, "name", e->scene->name);
   cJSON_AddItemToObject(head, "scene", cJSON_Duplicate(e->scene->doc, 1));
-  cJSON_AddArrayToObject(head, "sections");
+  cJSON *sections = cJSON_AddArrayToObject(head, "sections");
+  if (e->scene->cloud_cells && e->scene->cloud_density) {
+    /* The cells and density are immutable: the thread pool reads them through references. */
+    w->cells = cloud_cells_ref(e->scene->cloud_cells);
+    w->density = density_grid_ref(e->scene->cloud_density);
+    cJSON *sec = cJSON_CreateObject();
+    cJSON_AddStringToObject(sec, "name", "cloud");
+    cJSON_AddNumberToObject(sec, "bytes", (double)cloud_section_bytes(w->cells));
+    cJSON *dims = cJSON_AddArrayToObject(sec, "dims");
+    for (int i = 0; i < 3; i++)
+      cJSON_AddItemToArray(dims, cJSON_CreateNumber(w->cells->n[i]));
+    cJSON_AddNumberToObject(sec, "step", (double)w->cells->step);
+    cJSON_AddItemToArray(sections, sec);
+  }
   w->text = proto_print_line(head, &w->len);
   cJSON_Delete(head);
   if (!w->text) {
+    cloud_cells_unref(w->cells);
+    density_grid_unref(w->density);
     free(w);
     call_error(call, PROTO_E_INTERNAL, NULL, "internal error: out of memory");
     return;
@@ -149,7 +288,47 @@ static void load_work(uv_work_t *req) {
   if (!w->text) {
     w->err = errno;
     w->step = "read";
+    return;
   }
+  /* The sections after the header line; a bad one is reported by load_done. */
+  char *nl = memchr(w->text, '\n', w->len);
+  if (!nl)
+    return;
+  cJSON *head = proto_parse(w->text, (size_t)(nl - w->text), NULL, 0);
+  const cJSON *sections = cJSON_GetObjectItem(head, "sections");
+  size_t off = (size_t)(nl - w->text) + 1;
+  const cJSON *sec;
+  cJSON_ArrayForEach(sec, sections) {
+    const cJSON *bytes = cJSON_GetObjectItem(sec, "bytes");
+    const char *name = cJSON_GetStringValue(cJSON_GetObjectItem(sec, "name"));
+    if (!cJSON_IsNumber(bytes) || bytes->valuedouble < 0 || !name ||
+        bytes->valuedouble > (double)(w->len - off)) {
+      snprintf(w->bad, sizeof w->bad, "a section's size runs past the end of the file");
+      break;
+    }
+    size_t n = (size_t)bytes->valuedouble;
+    if (strcmp(name, "cloud") == 0 && !w->cells) {
+      cloud_unsection(w, sec, (const unsigned char *)w->text + off, n);
+      if (w->bad[0])
+        break;
+    }
+    off += n;
+  }
+  cJSON_Delete(head);
+}
+
+/* Whether 'doc' (not yet validated) enables a cloud of the dimensions of 'c'. */
+static int cloud_fits(const cJSON *doc, const cloud_cells_t *c) {
+  const cJSON *cloud = cJSON_GetObjectItem(doc, "cloud");
+  const cJSON *grid = cJSON_GetObjectItem(cloud, "grid");
+  if (!cJSON_IsTrue(cJSON_GetObjectItem(cloud, "enabled")) || cJSON_GetArraySize(grid) != 3)
+    return 0;
+  for (int i = 0; i < 3; i++) {
+    const cJSON *v = cJSON_GetArrayItem(grid, i);
+    if (!cJSON_IsNumber(v) || v->valuedouble != c->n[i])
+      return 0;
+  }
+  return 1;
 }
 
 static void load_done(uv_work_t *req, int status) {
@@ -173,6 +352,14 @@ static void load_done(uv_work_t *req, int status) {
       call_error(call, PROTO_E_INVALID_PARAMS, "file",
                  "invalid params: file: \"%s\" is not a volfx snapshot (version %d)%s%s", w->file,
                  SNAPSHOT_VERSION, why[0] ? ": " : "", why);
+    } else if (w->bad[0]) {
+      call_error(call, PROTO_E_INVALID_PARAMS, "file", "invalid params: file: \"%s\": %s", w->file,
+                 w->bad);
+    } else if (w->cells && !cloud_fits(doc, w->cells)) {
+      call_error(call, PROTO_E_INVALID_PARAMS, "file",
+                 "invalid params: file: \"%s\": the cloud section does not match cloud.grid, "
+                 "or the cloud is not enabled",
+                 w->file);
     } else {
       scene_error_t err = {0};
       if (scene_replace(e->scene, doc, &err) != 0) {
@@ -184,6 +371,13 @@ static void load_done(uv_work_t *req, int status) {
         cJSON_AddBoolToObject(cJSON_AddObjectToObject(patch, "sim"), "playing", e->rate > 0);
         scene_patch(e->scene, patch, &err);
         cJSON_Delete(patch);
+        /* The cells saved replace the freshly seeded ones (cloud_fits checked their grid). */
+        if (w->cells && e->scene->cloud_cells &&
+            memcmp(e->scene->cloud_cells->n, w->cells->n, sizeof w->cells->n) == 0 &&
+            scene_set_cloud(e->scene, w->cells, w->density, 1) == 0) {
+          w->cells = NULL;
+          w->density = NULL;
+        }
         cJSON *r = cJSON_CreateObject();
         cJSON_AddStringToObject(r, "file", w->file);
         cJSON_AddNumberToObject(r, "version", (double)e->scene->version);
@@ -195,6 +389,8 @@ static void load_done(uv_work_t *req, int status) {
   }
   cJSON_Delete(head);
   free(w->text);
+  cloud_cells_unref(w->cells);
+  density_grid_unref(w->density);
   free(w);
 }
 

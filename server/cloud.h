@@ -1,0 +1,23 @@
+/*
+ * The server side of the cloud (methods_cloud.c): automaton steps and density passes run as
+ * jobs on the render worker, in order with the renders. Every function here runs on the loop
+ * thread.
+ */
+#ifndef VOLFX_CLOUD_H
+#define VOLFX_CLOUD_H
+
+#include "server.h"
+
+/* Whether a step of 'e' must step its cloud: cloud.enabled. */
+int cloud_wants_step(const scene_entry_t *e);
+/* Whether a cloud job of 'e' is queued or running. */
+int cloud_busy(const scene_entry_t *e);
+/*
+ * Submits a job taking 'steps' simulation steps of the cloud of 'e' (each cloud.steps_per_frame
+ * automaton steps), then its density, smoothed; the result replaces the scene's cells and
+ * density when done, and 'call' (NULL for none) is answered then with the scene's clock.
+ * Returns 0, or -1 when the worker's queue is full (nothing submitted).
+ */
+int cloud_submit_step(server_t *srv, scene_entry_t *e, unsigned steps, call_t *call);
+
+#endif

@@ -1,0 +1,443 @@
+/*
+ * The cloud (SPEC §5.4) as the server runs it: cloud.get_cells and cloud.set_cells, and the
+ * cloud jobs that sim.step, sim.play and cloud.set_cells submit to the render worker.
+ *
+ * A scene's cells and shown density are immutable and shared (scene.h). A job takes
+ * references to them, steps the automaton into new cells on the worker (plain C: see
+ * docs/architecture.md), computes their density, blends it with the density shown so far
+ * (cloud.smoothing) and hands both back; its 'done' callback makes them the scene's unless the
+ * scene was deleted or its cells replaced meanwhile (cloud_gen changed). Jobs queued back to
+ * back chain through their cloud_link_t: each starts from what the one before it produced, so
+ * pipelined sim.step calls all count.
+ */
+#include <math.h>
+#include <stdio.h>
+#include <stdlib.h>
+#include <string.h>
+
+#include "cloud.h"
+#include "dispatch.h"
+#include "frames.h"
+#include "log.h"
+#include "worker.h"
+
+typedef struct cloud_job {
+  job_t job;
+  server_t *srv;
+  char scene[64];
+  uint64_t gen;          /* The scene's cloud_gen the job belongs to. */
+  call_t *call;          /* Answered when done, or NULL. */
+  const char *field;     /* cloud.set_cells: the field set; NULL for sim.step. */
+  cloud_cells_t *in;     /* The scene's cells at submission (a reference). */
+  density_grid_t *shown; /* The scene's density at submission (a reference). */
+  cloud_link_t *prev;    /* The job queued before this one, or NULL (a reference). */
+  cloud_link_t *res;     /* This job's result (a reference; the scene may hold another). */
+  scene_cloud_t cfg;
+  unsigned steps; /* Automaton steps. */
+  float keep;     /* Fraction of the shown density kept. */
+} cloud_job_t;
+
+static const cJSON *get(const cJSON *o, const char *name) {
+  return cJSON_GetObjectItemCaseSensitive(o, name);
+}
+
+/* Worker thread: the steps and the density. */
+static void cloud_run(renderer_t *r, job_t *j) {
+  (void)r;
+  cloud_job_t *cj = (cloud_job_t *)j;
+  cloud_cells_t *src = cj->in;
+  density_grid_t *shown = cj->shown;
+  if (cj->prev && cj->prev->ok) {
+    src = cj->prev->cells;
+    shown = cj->prev->density;
+  }
+  cloud_cells_t *buf[2] = {NULL, NULL}, *cur = src;
+  density_grid_t *d = NULL;
+  if (cj->steps > 0) {
+    buf[0] = cloud_cells_new(src->n);
+    buf[1] = cj->steps > 1 ? cloud_cells_new(src->n) : NULL;
+    if (!buf[0] || (cj->steps > 1 && !buf[1]))
+      goto oom;
+  }
+  for (unsigned i = 0; i < cj->steps; i++) {
+    cloud_cells_t *out = buf[i % 2];
+    cloud_step(cur, out, &cj->cfg.params);
+    cur = out;
+    /* Without active cells the Kuromiya rules change nothing more: the rest is counted only. */
+    if (cj->cfg.params.rules == CLOUD_KUROMIYA && !cloud_cells_any(cur, CLOUD_ACT)) {
+      cur->step += cj->steps - 1 - i;
+      break;
+    }
+  }
+  d = density_grid_new(src->n);
+  if (!d || cloud_density(cur, cj->cfg.radius, d->data) != 0)
+    goto oom;
+  if (cj->keep > 0 && shown && memcmp(shown->dims, d->dims, sizeof d->dims) == 0)
+    cloud_blend(d->data, shown->data, cloud_cells_count(cur), cj->keep);
+  cj->res->cells = cloud_cells_ref(cur);
+  cj->res->density = d;
+  cj->res->ok = 1;
+  cloud_cells_unref(buf[0]);
+  cloud_cells_unref(buf[1]);
+  return;
+oom:
+  density_grid_unref(d);
+  cloud_cells_unref(buf[0]);
+  cloud_cells_unref(buf[1]);
+  j->code = PROTO_E_INTERNAL;
+  snprintf(j->err, sizeof j->err, "out of memory for a %ux%ux%u cloud", src->n[0], src->n[1],
+           src->n[2]);
+}
+
+/* Loop thread: publishes the result and answers the call. */
+static void cloud_done(job_t *j) {
+  cloud_job_t *cj = (cloud_job_t *)j;
+  scene_entry_t *e = server_find_scene(cj->srv, cj->scene);
+  scene_t *s = e ? e->scene : NULL;
+  if (s && s->cloud_chain == cj->res) {
+    cloud_link_unref(s->cloud_chain);
+    s->cloud_chain = NULL;
+  }
+  if (j->code == 0 && s && s->cloud_gen == cj->gen) {
+    cloud_cells_t *c = cloud_cells_ref(cj->res->cells);
+    density_grid_t *d = density_grid_ref(cj->res->density);
+    if (scene_set_cloud(s, c, d, 0) != 0) {
+      cloud_cells_unref(c);
+      density_grid_unref(d);
+      j->code = PROTO_E_INTERNAL;
+      snprintf(j->err, sizeof j->err, "out of memory");
+    }
+  }
+  if (j->code != 0 && !cj->call)
+    LOG(LOG_WARN, "cloud", "a cloud step failed: %s", j->err);
+  if (cj->call) {
+    if (j->code != 0) {
+      call_error(cj->call, j->code, NULL, "%s: cloud: %s", proto_err_message(j->code), j->err);
+    } else if (cj->field) {
+      cJSON *r = cJSON_CreateObject();
+      cJSON_AddStringToObject(r, "field", cj->field);
+      cJSON_AddNumberToObject(r, "cells", (double)cloud_cells_count(cj->res->cells));
+      call_result(cj->call, r);
+    } else {
+      cJSON *r = cJSON_CreateObject();
+      cJSON_AddNumberToObject(r, "time", s ? scene_time(s) : 0);
+      cJSON_AddNumberToObject(r, "frame", s ? scene_frame(s) : 0);
+      call_result(cj->call, r);
+    }
+  }
+  cloud_cells_unref(cj->in);
+  density_grid_unref(cj->shown);
+  cloud_link_unref(cj->prev);
+  cloud_link_unref(cj->res);
+  free(cj);
+}
+
+/* A job of 'steps' automaton steps of the cloud of 's' (0: the density alone), chained after
+ * the job in flight, if any; NULL on OOM. */
+static cloud_job_t *job_new(server_t *srv, scene_t *s, unsigned steps, float keep, call_t *call) {
+  cloud_job_t *cj = calloc(1, sizeof *cj);
+  if (!cj)
+    return NULL;
+  cj->res = cloud_link_new();
+  if (!cj->res) {
+    free(cj);
+    return NULL;
+  }
+  cj->srv = srv;
+  snprintf(cj->scene, sizeof cj->scene, "%s", s->name);
+  cj->gen = s->cloud_gen;
+  cj->call = call;
+  cj->in = cloud_cells_ref(s->cloud_cells);
+  cj->shown = density_grid_ref(s->cloud_density);
+  cj->prev = cloud_link_ref(s->cloud_chain);
+  scene_cloud_config(s, &cj->cfg);
+  cj->steps = steps;
+  cj->keep = keep;
+  cj->job.run = cloud_run;
+  cj->job.done = cloud_done;
+  return cj;
+}
+
+static void job_free(cloud_job_t *cj) {
+  cloud_cells_unref(cj->in);
+  density_grid_unref(cj->shown);
+  cloud_link_unref(cj->prev);
+  cloud_link_unref(cj->res);
+  free(cj);
+}
+
+/* Queues 'cj' as the scene's newest cloud job. Returns 0, or -1 (not queued, not freed). */
+static int job_submit(server_t *srv, scene_t *s, cloud_job_t *cj) {
+  if (!srv->worker || worker_submit(srv->worker, &cj->job) != 0)
+    return -1;
+  cloud_link_unref(s->cloud_chain);
+  s->cloud_chain = cloud_link_ref(cj->res);
+  return 0;
+}
+
+int cloud_wants_step(const scene_entry_t *e) {
+  return e->scene->cloud_cells != NULL;
+}
+
+int cloud_busy(const scene_entry_t *e) {
+  return e->scene->cloud_chain != NULL;
+}
+
+int cloud_submit_step(server_t *srv, scene_entry_t *e, unsigned steps, call_t *call) {
+  scene_t *s = e->scene;
+  scene_cloud_t cfg;
+  if (scene_cloud_config(s, &cfg) != 0 || !s->cloud_cells)
+    return -1;
+  uint64_t n = (uint64_t)steps * cfg.steps_per_frame;
+  /* A million automaton steps of the smallest grid take seconds; more is surely a mistake,
+   * and unsigned arithmetic must not wrap. */
+  if (n > 1000000)
+    n = 1000000;
+  cloud_job_t *cj = job_new(srv, s, (unsigned)n, cfg.keep, call);
+  if (!cj)
+    return -1;
+  if (job_submit(srv, s, cj) != 0) {
+    job_free(cj);
+    return -1;
+  }
+  return 0;
+}
+
+/* ---- Methods ---- */
+
+static const char *const cloud_fields[] = {"hum", "act", "cld", "density", NULL};
+
+static cloud_field_t field_of(const char *f) {
+  return strcmp(f, "hum") == 0 ? CLOUD_HUM : strcmp(f, "act") == 0 ? CLOUD_ACT : CLOUD_CLD;
+}
+
+/* The scene of 'call' if it has a cloud; otherwise answers the call and returns NULL. */
+static scene_entry_t *cloud_scene(call_t *call) {
+  scene_entry_t *e = call_scene(call);
+  if (e && !e->scene->cloud_cells) {
+    call_error(call, PROTO_E_INVALID_PARAMS, "scene",
+               "invalid params: scene: '%s' has no cloud (cloud.enabled is false)", e->scene->name);
+    return NULL;
+  }
+  return e;
+}
+
+static void get_cells_m(call_t *call) {
+  scene_entry_t *e = cloud_scene(call);
+  if (!e)
+    return;
+  const scene_t *s = e->scene;
+  const char *field = get(call->params, "field")->valuestring;
+  int base64 = strcmp(get(call->params, "encoding")->valuestring, "base64") == 0;
+  size_t n = cloud_cells_count(s->cloud_cells);
+  int dens = strcmp(field, "density") == 0;
+  size_t nbytes = dens ? 4 * n : n;
+  /* An answer over the connection's output limit would close the connection; refuse it. */
+  size_t sent = base64 ? proto_b64_encoded_len(nbytes) : nbytes;
+  if (sent + 4096 > call->srv->cfg.limits.output_bytes) {
+    call_error(call, PROTO_E_LIMIT, "field",
+               "%s: field: %zu bytes of %s are over the output limit of %zu bytes per "
+               "connection (limits.output_bytes)",
+               proto_err_message(PROTO_E_LIMIT), sent, field,
+               (size_t)call->srv->cfg.limits.output_bytes);
+    return;
+  }
+  unsigned char *bytes = malloc(nbytes);
+  if (!bytes) {
+    call_error(call, PROTO_E_INTERNAL, NULL, "internal error: out of memory");
+    return;
+  }
+  if (dens) {
+    const float *src = s->cloud_density->data;
+    for (size_t i = 0; i < n; i++) {
+      uint32_t u;
+      memcpy(&u, &src[i], 4);
+      for (int b = 0; b < 4; b++)
+        bytes[4 * i + b] = (unsigned char)(u >> (8 * b));
+    }
+  } else {
+    cloud_cells_export(s->cloud_cells, field_of(field), bytes);
+  }
+  cJSON *r = cJSON_CreateObject();
+  cJSON_AddStringToObject(r, "field", field);
+  cJSON *dims = cJSON_AddArrayToObject(r, "dims");
+  for (int i = 0; i < 3; i++)
+    cJSON_AddItemToArray(dims, cJSON_CreateNumber(s->cloud_cells->n[i]));
+  cJSON_AddNumberToObject(r, "cells", (double)n);
+  cJSON_AddNumberToObject(r, "step", (double)s->cloud_cells->step);
+  call_result_bytes(call, r, bytes, nbytes, dens ? "f32" : "u8", 0, 0, base64);
+}
+
+static void set_cells_m(call_t *call) {
+  scene_entry_t *e = cloud_scene(call);
+  if (!e)
+    return;
+  scene_t *s = e->scene;
+  const char *field = get(call->params, "field")->valuestring;
+  const char *data = get(call->params, "data")->valuestring;
+  int dens = strcmp(field, "density") == 0;
+  size_t n = cloud_cells_count(s->cloud_cells), want = dens ? 4 * n : n;
+  size_t len = strlen(data);
+  if (proto_b64_decoded_max(len) > want + 3) {
+    call_error(call, PROTO_E_INVALID_PARAMS, "data",
+               "invalid params: data: more than the %zu bytes of %s for %zu cells", want, field, n);
+    return;
+  }
+  unsigned char *buf = malloc(want + 3);
+  cloud_cells_t *cells = NULL;
+  density_grid_t *grid = NULL;
+  if (!buf) {
+    call_error(call, PROTO_E_INTERNAL, NULL, "internal error: out of memory");
+    return;
+  }
+  long got = proto_b64_decode(data, len, buf);
+  if (got < 0) {
+    call_error(call, PROTO_E_INVALID_PARAMS, "data", "invalid params: data: not valid base64");
+    goto out;
+  }
+  if ((size_t)got != want) {
+    call_error(call, PROTO_E_INVALID_PARAMS, "data",
+               "invalid params: data: %ld bytes, want %zu (%s: %s for each of %u x %u x %u cells)",
+               got, want, field, dens ? "one little-endian f32" : "one byte 0 or 1",
+               s->cloud_cells->n[0], s->cloud_cells->n[1], s->cloud_cells->n[2]);
+    goto out;
+  }
+  if (dens) {
+    grid = density_grid_new(s->cloud_cells->n);
+    if (!grid) {
+      call_error(call, PROTO_E_INTERNAL, NULL, "internal error: out of memory");
+      goto out;
+    }
+    for (size_t i = 0; i < n; i++) {
+      const unsigned char *b = buf + 4 * i;
+      uint32_t u =
+          (uint32_t)b[0] | (uint32_t)b[1] << 8 | (uint32_t)b[2] << 16 | (uint32_t)b[3] << 24;
+      float x;
+      memcpy(&x, &u, 4);
+      if (!isfinite(x) || x < 0) {
+        call_error(call, PROTO_E_INVALID_PARAMS, "data",
+                   "invalid params: data: the density of cell %zu is %g; densities must be "
+                   "finite and not negative",
+                   i, x);
+        goto out;
+      }
+      grid->data[i] = x;
+    }
+    if (scene_set_cloud(s, cloud_cells_ref(s->cloud_cells), grid, 1) != 0) {
+      cloud_cells_unref(s->cloud_cells);
+      call_error(call, PROTO_E_INTERNAL, NULL, "internal error: out of memory");
+      goto out;
+    }
+    grid = NULL;
+  } else {
+    for (size_t i = 0; i < n; i++)
+      if (buf[i] > 1) {
+        call_error(call, PROTO_E_INVALID_PARAMS, "data",
+                   "invalid params: data: cell %zu is %u; %s cells must be 0 or 1", i, buf[i],
+                   field);
+        goto out;
+      }
+    cells = cloud_cells_copy(s->cloud_cells);
+    if (!cells) {
+      call_error(call, PROTO_E_INTERNAL, NULL, "internal error: out of memory");
+      goto out;
+    }
+    cloud_cells_import(cells, field_of(field), buf);
+    cloud_job_t *cj = NULL;
+    if (field_of(field) == CLOUD_CLD) {
+      /* The density follows the new cloud cells at once (no smoothing); the answer waits. */
+      cj = job_new(call->srv, s, 0, 0, call);
+      if (!cj) {
+        call_error(call, PROTO_E_INTERNAL, NULL, "internal error: out of memory");
+        goto out;
+      }
+      cj->field = field;
+      cloud_cells_unref(cj->in);
+      cj->in = cloud_cells_ref(cells);
+      cloud_link_unref(cj->prev);
+      cj->prev = NULL;
+      if (!call->srv->worker || worker_submit(call->srv->worker, &cj->job) != 0) {
+        job_free(cj);
+        call_error(call, PROTO_E_BUSY, NULL, "%s: the render queue is full",
+                   proto_err_message(PROTO_E_BUSY));
+        goto out;
+      }
+    }
+    if (scene_set_cloud(s, cells, density_grid_ref(s->cloud_density), 1) != 0) {
+      density_grid_unref(s->cloud_density);
+      if (cj) {
+        cj->call = NULL; /* Dropped when done: generation 0 is never a cloud's. */
+        cj->gen = 0;
+      }
+      call_error(call, PROTO_E_INTERNAL, NULL, "internal error: out of memory");
+      goto out;
+    }
+    cells = NULL;
+    if (cj) {
+      cj->gen = s->cloud_gen;
+      s->cloud_chain = cloud_link_ref(cj->res);
+      goto out; /* Answered by the job. */
+    }
+  }
+  cJSON *r = cJSON_CreateObject();
+  cJSON_AddStringToObject(r, "field", field);
+  cJSON_AddNumberToObject(r, "cells", (double)n);
+  call_result(call, r);
+out:
+  free(buf);
+  cloud_cells_unref(cells);
+  density_grid_unref(grid);
+}
+
+static const sch_field_t get_params[] = {
+    PARAM_SCENE,
+    {.name = "field",
+     .type = SCH_ENUM,
+     .desc = "hum, act or cld: one byte 0 or 1 per cell (u8); density: the density drawn, one "
+             "little-endian f32 per cell. x fastest, then y, then z.",
+     .enum_values = cloud_fields,
+     .def_str = "cld"},
+    {.name = "encoding",
+     .type = SCH_ENUM,
+     .desc = "binary: an attachment after the line; base64: inline in 'data'.",
+     .enum_values = render_encodings,
+     .def_str = "binary"},
+    {0}};
+static const sch_field_t set_params[] = {
+    PARAM_SCENE,
+    {.name = "field",
+     .type = SCH_ENUM,
+     .desc = "hum, act or cld (one byte 0 or 1 per cell) or density (one little-endian f32 per "
+             "cell, finite and not negative). x fastest, then y, then z.",
+     .enum_values = cloud_fields,
+     .flags = SCH_REQUIRED},
+    {.name = "data",
+     .type = SCH_STRING,
+     .desc = "Base64 of exactly one value per cell of cloud.grid. Setting cld recomputes the "
+             "density before the answer; setting density shows it until the next step.",
+     .flags = SCH_REQUIRED},
+    {0}};
+
+static const int get_errors[] = {PROTO_E_UNAUTHORIZED, PROTO_E_NOT_FOUND, PROTO_E_LIMIT, 0};
+static const int set_errors[] = {PROTO_E_UNAUTHORIZED, PROTO_E_NOT_FOUND, PROTO_E_BUSY, 0};
+
+#define OBJ(f)                                                                                     \
+  &(sch_field_t) {                                                                                 \
+    .type = SCH_OBJECT, .fields = (f)                                                              \
+  }
+
+const method_t method_cloud_get_cells = {
+    .name = "cloud.get_cells",
+    .summary = "One field of the cloud's cells (hum, act, cld as u8 0/1) or its density (f32).",
+    .params = OBJ(get_params),
+    .result = "{field, dims, cells, step} and an attachment of one u8 or f32 per cell.",
+    .errors = get_errors,
+    .handler = get_cells_m};
+const method_t method_cloud_set_cells = {
+    .name = "cloud.set_cells",
+    .summary = "Replaces one field of the cloud's cells or its density; validated as a whole, "
+               "nothing changes on error.",
+    .params = OBJ(set_params),
+    .result = "{field, cells}",
+    .errors = set_errors,
+    .handler = set_cells_m};

@@ -1,0 +1,391 @@
+#!/usr/bin/env python3
+"""
+The cellular-automaton cloud against a real volfxd: cloud.set_cells / cloud.get_cells
+round-trip exactly, sim.step changes the cells exactly as a naive reference automaton written
+here from SPEC 5.4 says, the density after cloud.set_cells matches a direct Gaussian sum,
+dobashi clouds are reproducible per seed, bad inputs are refused with data.path and nothing
+changed, and a scene with a stepping cloud can be deleted and the server shut down cleanly.
+
+    python3 tests/integration/test_cloud.py --bin build/bin
+"""
+
+import base64
+import json
+import math
+import os
+import random
+import struct
+import sys
+import time
+
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+import mock  # noqa: E402
+from mock import E_PARAMS, expect_error  # noqa: E402
+
+E_LIMIT = -32003
+
+suite = mock.Suite("test_cloud", timeout_s=400)
+suite.server_args = []
+T = suite.test
+
+NX, NY, NZ = 11, 9, 7
+N = NX * NY * NZ
+
+
+def b64(data):
+    return base64.b64encode(bytes(data)).decode()
+
+
+def make(c, name, grid=(NX, NY, NZ), **cloud):
+    cfg = {"enabled": True, "grid": list(grid), "smoothing": 0}
+    cfg.update(cloud)
+    c.ok("scene.create", {"name": name})
+    c.ok("scene.set", {"scene": name, "patch": {"cloud": cfg}})
+
+
+def get(c, scene, field):
+    r, att = c.ok("cloud.get_cells", {"scene": scene, "field": field})
+    return r, att
+
+
+def ref_step(hum, act, cld, n):
+    """One step of SPEC 5.4, one cell at a time; cells outside the grid read 0."""
+    nx, ny, nz = n
+
+    def a(i, j, k):
+        if 0 <= i < nx and 0 <= j < ny and 0 <= k < nz:
+            return act[i + nx * (j + ny * k)]
+        return 0
+
+    h2, a2, c2 = [0] * len(hum), [0] * len(hum), [0] * len(hum)
+    for k in range(nz):
+        for j in range(ny):
+            for i in range(nx):
+                x = i + nx * (j + ny * k)
+                f = (a(i + 1, j, k) or a(i - 1, j, k) or a(i, j + 1, k) or a(i, j - 1, k) or
+                     a(i, j, k + 1) or a(i, j, k - 1) or a(i - 2, j, k) or a(i, j - 2, k) or
+                     a(i, j, k - 2))
+                c2[x] = 1 if (cld[x] or act[x]) else 0
+                h2[x] = 1 if (hum[x] and not act[x]) else 0
+                a2[x] = 1 if (not act[x] and hum[x] and f) else 0
+    return h2, a2, c2
+
+
+def random_cells(rng):
+    hum = [1 if rng.random() < 0.6 else 0 for _ in range(N)]
+    act = [1 if rng.random() < 0.03 else 0 for _ in range(N)]
+    cld = [1 if rng.random() < 0.05 else 0 for _ in range(N)]
+    return hum, act, cld
+
+
+@T
+def round_trip(s):
+    c = s.srv.connect()
+    make(c, "rt")
+    r, att = get(c, "rt", "hum")
+    s.eq(r.get("dims"), [NX, NY, NZ], "get_cells dims")
+    s.eq(r.get("cells"), N, "get_cells cells")
+    s.eq((r.get("attachment") or {}).get("format"), "u8", "hum is u8")
+    s.eq(len(att or b""), N, "one byte per cell")
+    s.check(set(att) <= {0, 1}, "cells are 0 or 1")
+    s.check(sum(att) > N // 3, "the default seeding makes about 60% of the cells humid",
+            sum(att))
+    rng = random.Random(5)
+    for field, vals in zip(("hum", "act", "cld"), random_cells(rng)):
+        r, _ = c.ok("cloud.set_cells", {"scene": "rt", "field": field, "data": b64(vals)})
+        s.eq(r.get("cells"), N, "set_cells %s reports the cells" % field)
+        _, att = get(c, "rt", field)
+        s.check(att == bytes(vals), "%s comes back exactly" % field)
+    # base64 encoding of the answer.
+    r, _ = c.ok("cloud.get_cells", {"scene": "rt", "field": "cld", "encoding": "base64"})
+    s.check(base64.b64decode(r.get("data", "")) == bytes(vals), "cld as base64 matches")
+    dens = [0.25 * (i % 7) for i in range(N)]
+    c.ok("cloud.set_cells", {"scene": "rt", "field": "density",
+                             "data": b64(struct.pack("<%df" % N, *dens))})
+    r, att = get(c, "rt", "density")
+    s.eq((r.get("attachment") or {}).get("format"), "f32", "density is f32")
+    s.check(att == struct.pack("<%df" % N, *dens), "density comes back exactly")
+
+
+@T
+def steps_match_reference(s):
+    c = s.srv.connect()
+    make(c, "ref")
+    rng = random.Random(11)
+    hum, act, cld = random_cells(rng)
+    for field, vals in zip(("hum", "act", "cld"), (hum, act, cld)):
+        c.ok("cloud.set_cells", {"scene": "ref", "field": field, "data": b64(vals)})
+    n = (NX, NY, NZ)
+    for steps in (1, 3):
+        c.ok("sim.step", {"scene": "ref", "steps": steps}, timeout=60)
+        for _ in range(steps):
+            hum, act, cld = ref_step(hum, act, cld, n)
+        for field, want in zip(("hum", "act", "cld"), (hum, act, cld)):
+            r, att = get(c, "ref", field)
+            s.check(att == bytes(want), "%s after sim.step %d equals the reference" %
+                    (field, steps), "%d cells differ" % sum(a != b for a, b in zip(att, want)))
+    s.eq(r.get("step"), 4, "four automaton steps taken")
+    # steps_per_frame: one simulation step, two automaton steps.
+    c.ok("scene.set", {"scene": "ref", "path": "cloud.steps_per_frame", "value": 2})
+    c.ok("sim.step", {"scene": "ref"}, timeout=60)
+    for _ in range(2):
+        hum, act, cld = ref_step(hum, act, cld, n)
+    _, att = get(c, "ref", "cld")
+    s.check(att == bytes(cld), "steps_per_frame 2 takes two automaton steps")
+    # Pipelined steps all count.
+    for _ in range(3):
+        c.send(c.request("sim.step", {"scene": "ref"}))
+    for _ in range(3):
+        resp, _ = c.recv_response(timeout=60)
+        s.check("result" in resp, "pipelined sim.step answered", mock.short(resp))
+    for _ in range(6):
+        hum, act, cld = ref_step(hum, act, cld, n)
+    _, att = get(c, "ref", "act")
+    s.check(att == bytes(act), "three pipelined sim.step calls take six automaton steps")
+    # Once no cell is active the cells stay as they are, however many steps are asked for.
+    c.ok("cloud.set_cells", {"scene": "ref", "field": "act", "data": b64([0] * N)})
+    before = {f: get(c, "ref", f)[1] for f in ("hum", "cld")}
+    step0 = get(c, "ref", "cld")[0].get("step")
+    r, _ = c.ok("sim.step", {"scene": "ref", "steps": 100000}, timeout=60)
+    r, _ = get(c, "ref", "cld")
+    s.eq(r.get("step") - step0, 200000, "100000 steps of 2 automaton steps counted")
+    s.check(all(get(c, "ref", f)[1] == before[f] for f in ("hum", "cld")),
+            "without active cells the cells stay")
+
+
+@T
+def density_after_set(s):
+    c = s.srv.connect()
+    g = (15, 13, 11)
+    make(c, "dens", grid=g, metaball_radius=3)
+    n = g[0] * g[1] * g[2]
+    cells = [(4, 5, 6), (9, 6, 5), (10, 6, 5)]
+    cld = [0] * n
+    for (i, j, k) in cells:
+        cld[i + g[0] * (j + g[1] * k)] = 1
+    c.ok("cloud.set_cells", {"scene": "dens", "field": "cld", "data": b64(cld)}, timeout=60)
+    _, att = get(c, "dens", "density")
+    got = struct.unpack("<%df" % n, att)
+    sigma = 1.0
+    norm = sum(math.exp(-d * d / (2 * sigma * sigma)) for d in range(-3, 4))
+    worst = 0.0
+    for k in range(g[2]):
+        for j in range(g[1]):
+            for i in range(g[0]):
+                want = 0.0
+                for (a, b, cc) in cells:
+                    if abs(a - i) <= 3 and abs(b - j) <= 3 and abs(cc - k) <= 3:
+                        d2 = (a - i) ** 2 + (b - j) ** 2 + (cc - k) ** 2
+                        want += math.exp(-d2 / (2 * sigma * sigma)) / norm ** 3
+                worst = max(worst, abs(got[i + g[0] * (j + g[1] * k)] - want))
+    s.check(worst < 1e-6, "density after set_cells cld is the Gaussian sum", "worst %g" % worst)
+    s.check(max(got) > 0.05, "the density has a peak", max(got))
+    # With smoothing, a step moves the density only part of the way.
+    c.ok("scene.set", {"scene": "dens", "path": "cloud.smoothing", "value": 0.5})
+    zero = [0] * n
+    c.ok("cloud.set_cells", {"scene": "dens", "field": "act", "data": b64(zero)})
+    before = got
+    c.ok("cloud.set_cells", {"scene": "dens", "field": "density",
+                             "data": b64(struct.pack("<%df" % n, *([0.0] * n)))})
+    c.ok("sim.step", {"scene": "dens"}, timeout=60)
+    _, att = get(c, "dens", "density")
+    after = struct.unpack("<%df" % n, att)
+    i = max(range(n), key=lambda x: before[x])
+    s.check(abs(after[i] - 0.5 * before[i]) < 1e-6, "smoothing 0.5 shows half the new density",
+            (after[i], before[i]))
+
+
+@T
+def dobashi_reproducible(s):
+    c = s.srv.connect()
+    opts = dict(rules="dobashi", p_ext=0.05, p_hum=0.05, p_act=0.01, wind=0.5)
+    for name, seed in (("d1", 3), ("d2", 3), ("d3", 4)):
+        make(c, name, grid=(24, 16, 12), seed=seed, **opts)
+        c.ok("sim.step", {"scene": name, "steps": 8}, timeout=60)
+    cells = {name: get(c, name, "cld")[1] for name in ("d1", "d2", "d3")}
+    s.check(sum(cells["d1"]) > 0, "the dobashi cloud has cloud cells", sum(cells["d1"]))
+    s.check(cells["d1"] == cells["d2"], "the same seed gives the same cloud")
+    s.check(cells["d1"] != cells["d3"], "another seed gives another cloud")
+
+
+@T
+def bad_inputs(s):
+    c = s.srv.connect()
+    make(c, "bad")
+    rng = random.Random(3)
+    hum = [1 if rng.random() < 0.5 else 0 for _ in range(N)]
+    c.ok("cloud.set_cells", {"scene": "bad", "field": "hum", "data": b64(hum)})
+    before = {f: get(c, "bad", f)[1] for f in ("hum", "act", "cld", "density")}
+    p = {"scene": "bad", "field": "hum"}
+    expect_error(s, c, "cloud.set_cells", dict(p, data=b64([0] * (N - 1))), E_PARAMS, "data",
+                 "one byte short")
+    expect_error(s, c, "cloud.set_cells", dict(p, data=b64([0] * (N + 1))), E_PARAMS, "data",
+                 "one byte over")
+    expect_error(s, c, "cloud.set_cells", dict(p, data=b64([0] * (N - 1) + [2])), E_PARAMS,
+                 "data", "a cell that is 2")
+    expect_error(s, c, "cloud.set_cells", dict(p, data="!!not base64!!"), E_PARAMS, "data",
+                 "bad base64")
+    expect_error(s, c, "cloud.set_cells", dict(p, field="ice", data=b64([0] * N)), E_PARAMS,
+                 "field", "unknown field")
+    expect_error(s, c, "cloud.set_cells", {"scene": "bad", "field": "cld"}, E_PARAMS, "data",
+                 "no data")
+    d = {"scene": "bad", "field": "density"}
+    for bad, what in ((-1.0, "negative"), (float("nan"), "NaN"), (float("inf"), "infinite")):
+        vals = [0.5] * N
+        vals[N // 2] = bad
+        expect_error(s, c, "cloud.set_cells", dict(d, data=b64(struct.pack("<%df" % N, *vals))),
+                     E_PARAMS, "data", "a %s density" % what)
+    expect_error(s, c, "cloud.set_cells", dict(d, data=b64(bytes(4 * N - 4))), E_PARAMS, "data",
+                 "a density short of one float")
+    expect_error(s, c, "scene.set", {"scene": "bad", "patch": {"cloud": {"grid": [257, 8, 8]}}},
+                 E_LIMIT, "cloud.grid", "a grid over limits.cloud_side")
+    expect_error(s, c, "scene.set", {"scene": "bad", "patch": {"cloud": {"grid": [8.5, 8, 8]}}},
+                 E_PARAMS, "cloud.grid", "a fractional grid")
+    expect_error(s, c, "scene.set", {"scene": "bad", "patch": {"cloud": {"grid": [0, 8, 8]}}},
+                 E_PARAMS, "cloud.grid.0", "an empty grid")
+    expect_error(s, c, "scene.set", {"scene": "bad", "patch": {"cloud": {"p_ext": 1.5}}},
+                 E_PARAMS, "cloud.p_ext", "a probability over 1")
+    expect_error(s, c, "scene.set", {"scene": "bad", "patch": {"cloud": {"rules": "conway"}}},
+                 E_PARAMS, "cloud.rules", "unknown rules")
+    expect_error(s, c, "scene.set",
+                 {"scene": "bad", "patch": {"cloud": {"ellipsoids": [
+                     {"center": [0, 0, 0], "radii": [1, 0, 1]}]}}},
+                 E_PARAMS, "cloud.ellipsoids.0.radii", "a flat ellipsoid")
+    s.eq(c.ok("scene.get", {"scene": "bad", "path": "cloud.grid"})[0], [NX, NY, NZ],
+         "refused patches left the grid")
+    for f in ("hum", "act", "cld", "density"):
+        s.check(get(c, "bad", f)[1] == before[f], "refused inputs left %s unchanged" % f)
+    # A scene without a cloud.
+    c.ok("scene.create", {"name": "nocloud"})
+    expect_error(s, c, "cloud.get_cells", {"scene": "nocloud", "field": "cld"}, E_PARAMS,
+                 "scene", "get_cells without a cloud")
+    expect_error(s, c, "cloud.set_cells",
+                 {"scene": "nocloud", "field": "cld", "data": b64([0] * N)}, E_PARAMS, "scene",
+                 "set_cells without a cloud")
+    expect_error(s, c, "cloud.get_cells", {"scene": "nosuch", "field": "cld"}, mock.E_NOT_FOUND,
+                 None, "an unknown scene")
+
+
+@T
+def grid_limit_config(s):
+    d = mock.tempfile.mkdtemp(prefix="volfx-cloud-")
+    path = os.path.join(d, "volfxd.json")
+    with open(path, "w") as f:
+        f.write(json.dumps({"limits": {"cloud_side": 80, "output_bytes": 1 << 20}}))
+    with mock.Server(s.bin, "--config", path) as srv:
+        c = srv.connect()
+        make(c, "lim", grid=(16, 16, 16))
+        expect_error(s, c, "scene.set",
+                     {"scene": "lim", "path": "cloud.grid", "value": [81, 16, 16]}, E_LIMIT,
+                     "cloud.grid", "over a configured limit of 80")
+        s.eq(get(c, "lim", "cld")[0].get("dims"), [16, 16, 16], "the refused grid left the cells")
+        # 80³ f32 is 2 MB, over an output limit of 1 MiB: refused, the connection lives.
+        make(c, "big", grid=(80, 80, 80))
+        expect_error(s, c, "cloud.get_cells", {"scene": "big", "field": "density"}, E_LIMIT,
+                     "field", "a density over limits.output_bytes")
+        s.eq(len(get(c, "big", "hum")[1]), 512000, "the connection still answers")
+        # A disabled cloud may keep a larger grid, but cannot be enabled with it.
+        c.ok("scene.set", {"scene": "lim", "patch": {"cloud": {"enabled": False,
+                                                               "grid": [96, 16, 16]}}})
+        expect_error(s, c, "scene.set", {"scene": "lim", "path": "cloud.enabled", "value": True},
+                     E_LIMIT, "cloud.grid", "enabling a cloud over the limit")
+        s.eq(c.ok("scene.get", {"scene": "lim", "path": "cloud.enabled"})[0], False,
+             "the refused enable left the cloud disabled")
+
+
+@T
+def reseed_and_render(s):
+    c = s.srv.connect()
+    make(c, "rs", grid=(32, 32, 32), smoothing=0.5, init={"hum": 0.7, "act": 0.002})
+    c.ok("sim.step", {"scene": "rs", "steps": 6}, timeout=60)
+    r, att = get(c, "rs", "cld")
+    s.check(sum(att) > 0, "the default seeding grows a cloud", sum(att))
+    s.eq(r.get("step"), 6, "six automaton steps")
+    r, att = c.ok("render", {"scene": "rs", "width": 64, "height": 64, "format": "rgba8"},
+                  timeout=60)
+    s.eq(len(att or b""), 64 * 64 * 4, "a scene with a cloud renders")
+    # Changing the seed seeds fresh cells; changing the density knob keeps them.
+    c.ok("scene.set", {"scene": "rs", "path": "cloud.density", "value": 3})
+    s.eq(get(c, "rs", "cld")[0].get("step"), 6, "changing cloud.density keeps the cells")
+    c.ok("scene.set", {"scene": "rs", "path": "cloud.seed", "value": 9})
+    r, att = get(c, "rs", "cld")
+    s.eq((r.get("step"), sum(att)), (0, 0), "a new seed gives fresh cells without cloud")
+    c.ok("scene.set", {"scene": "rs", "path": "cloud.enabled", "value": False})
+    expect_error(s, c, "cloud.get_cells", {"scene": "rs"}, E_PARAMS, "scene",
+                 "a disabled cloud has no cells")
+
+
+@T
+def snapshot_carries_cells(s):
+    c = s.srv.connect()
+    make(c, "snap", grid=(40, 24, 20), rules="dobashi", p_ext=0.02, wind=0.5, smoothing=0.5)
+    c.ok("sim.step", {"scene": "snap", "steps": 7}, timeout=60)
+    saved = {f: get(c, "snap", f) for f in ("hum", "act", "cld", "density")}
+    r, _ = c.ok("scene.save", {"scene": "snap", "file": "cloud.snap"})
+    path = os.path.join(s.srv.data_dir, "cloud.snap")
+    with open(path, "rb") as f:
+        data = f.read()
+    head = json.loads(data.split(b"\n", 1)[0])
+    secs = head.get("sections") or []
+    s.eq([x.get("name") for x in secs], ["cloud"], "the snapshot lists a cloud section")
+    s.eq(r.get("bytes"), len(data), "save reports every byte, sections included")
+    c.ok("sim.step", {"scene": "snap", "steps": 3}, timeout=60)
+    s.check(get(c, "snap", "cld")[1] != saved["cld"][1], "the cloud moved on after the save")
+    c.ok("scene.load", {"scene": "snap", "file": "cloud.snap"})
+    for f in ("hum", "act", "cld", "density"):
+        r, att = get(c, "snap", f)
+        s.check(att == saved[f][1], "load restores %s" % f)
+    s.eq(r.get("step"), 7, "load restores the automaton's step")
+    # The same steps after the load give what they gave before it.
+    c.ok("sim.step", {"scene": "snap", "steps": 3}, timeout=60)
+    after_load = get(c, "snap", "cld")[1]
+    c.ok("scene.load", {"scene": "snap", "file": "cloud.snap"})
+    c.ok("sim.step", {"scene": "snap", "steps": 3}, timeout=60)
+    s.check(get(c, "snap", "cld")[1] == after_load, "a loaded cloud steps reproducibly")
+    # A truncated section is refused and nothing changes.
+    with open(os.path.join(s.srv.data_dir, "short.snap"), "wb") as f:
+        f.write(data[:-10])
+    before = get(c, "snap", "cld")[1]
+    expect_error(s, c, "scene.load", {"scene": "snap", "file": "short.snap"}, E_PARAMS, "file",
+                 "a truncated cloud section")
+    s.check(get(c, "snap", "cld")[1] == before, "the refused load left the cells")
+
+
+@T
+def play_steps_the_cloud(s):
+    c = s.srv.connect()
+    make(c, "play", grid=(32, 32, 32), rules="dobashi", wind=0.5)
+    step0 = get(c, "play", "cld")[0].get("step")
+    c.ok("sim.play", {"scene": "play", "rate": 60})
+    time.sleep(0.6)
+    c.ok("sim.pause", {"scene": "play"})
+    time.sleep(0.3)  # A job still running when paused lands after the pause.
+    r, _ = get(c, "play", "cld")
+    s.check(r.get("step", 0) > step0, "sim.play steps the cloud", (step0, r.get("step")))
+    frame = c.ok("scene.get", {"scene": "play", "path": "sim.frame"})[0]
+    s.check(r.get("step", 0) <= frame, "the cloud never runs ahead of the clock",
+            (r.get("step"), frame))
+
+
+@T
+def delete_and_shutdown(s):
+    with mock.Server(s.bin) as srv:
+        c = srv.connect()
+        for name in ("c1", "c2"):
+            make(c, name, grid=(48, 48, 48))
+            c.ok("sim.step", {"scene": name, "steps": 2}, timeout=120)
+        # A step still running when its scene goes away is dropped quietly.
+        c.send(c.request("sim.step", {"scene": "c1", "steps": 3}))
+        c.send(c.request("scene.delete", {"name": "c1"}))
+        c.recv_response(timeout=120)
+        c.recv_response(timeout=120)
+        make(c, "c1", grid=(8, 8, 8))
+        s.eq(get(c, "c1", "cld")[0].get("dims"), [8, 8, 8], "a new scene of the same name")
+        c.ok("sim.play", {"scene": "c2", "rate": 120})
+        r, _ = c.ok("server.shutdown", {})
+        s.eq(r, {"shutting_down": True}, "server.shutdown")
+        s.eq(srv.wait_exit(30), 0, "volfxd exits 0 after deleting a cloud scene and shutting down")
+
+
+if __name__ == "__main__":
+    sys.exit(suite.main())
