@@ -58,6 +58,12 @@ static const char usage_text[] =
     "                                The frame number is the scene's (sim.frame), the same for\n"
     "                                every frame of a paused scene: --seq numbers the files\n"
     "                                1, 2, ... in order of arrival instead\n"
+    "  sequence FIRST LAST --dir DIR [--step N] [-W W] [-H H] [--format F] [--aov A]\n"
+    "           [--layers a,b] [--camera JSON] [-v]\n"
+    "                                render.sequence: the server steps the scene and writes\n"
+    "                                frames FIRST..LAST as DIR/frame_NNNNNN.EXT under its data\n"
+    "                                directory; waits for the job to end (Ctrl-C cancels it),\n"
+    "                                -v prints each file as it is written\n"
     "  script FILE                   run one command per line on one connection; blank lines\n"
     "                                and words starting with # are skipped; words split as in\n"
     "                                the shell ('...', \"...\", \\); stops at the first error\n"
@@ -758,6 +764,106 @@ static int cmd_watch(const cli_t *cli, int argc, char **argv) {
   return status;
 }
 
+/* sequence FIRST LAST --dir DIR [--step N] [frame options] [-v] */
+static int cmd_sequence(const cli_t *cli, int argc, char **argv) {
+  long first, last, step = 1;
+  if (argc < 3 || !parse_long(argv[1], &first) || !parse_long(argv[2], &last)) {
+    return usage_error(cli, "sequence needs FIRST LAST (frame numbers)%s", NULL);
+  }
+  cJSON *p = scene_params(cli);
+  const char *dir = NULL;
+  int verbose = 0;
+  for (int i = 3; i < argc; i++) {
+    const char *v;
+    int m = take_opt(argc, argv, &i, "--dir", "-d", &dir);
+    if (m == 0 && (m = take_opt(argc, argv, &i, "--step", "-s", &v)) > 0 && !parse_long(v, &step)) {
+      m = -usage_error(cli, "--step needs a whole number%s", NULL);
+    }
+    if (m < 0 && m != -EXIT_USAGE) {
+      m = -usage_error(cli, "%s needs a value", argv[i]);
+    }
+    if (m == 0 && (strcmp(argv[i], "-v") == 0 || strcmp(argv[i], "--verbose") == 0)) {
+      verbose = 1;
+      m = 1;
+    }
+    if (m == 0) {
+      m = frame_opt(cli, argc, argv, &i, p);
+    }
+    if (m <= 0) {
+      cJSON_Delete(p);
+      return m < 0 ? -m : usage_error(cli, "sequence: unexpected '%s'", argv[i]);
+    }
+  }
+  if (dir == NULL) {
+    cJSON_Delete(p);
+    return usage_error(cli, "sequence needs --dir DIR%s", NULL);
+  }
+  cJSON_AddNumberToObject(p, "first", (double)first);
+  cJSON_AddNumberToObject(p, "last", (double)last);
+  cJSON_AddNumberToObject(p, "step", (double)step);
+  cJSON_AddStringToObject(p, "dir", dir);
+  default_format(p);
+  cJSON *r = NULL;
+  if (rpc(cli, "render.sequence", p, &r, NULL) != 0) {
+    return EXIT_FAIL;
+  }
+  double id = cJSON_GetNumberValue(cJSON_GetObjectItemCaseSensitive(r, "id"));
+  cJSON_Delete(r);
+  interrupted = 0;
+  catch_sigint(1);
+  int status = 0, cancelled = 0;
+  for (;;) {
+    if (interrupted && !cancelled) {
+      cJSON *cp = cJSON_CreateObject();
+      cJSON_AddNumberToObject(cp, "id", id);
+      cJSON *cr = NULL;
+      rpc(cli, "job.cancel", cp, &cr, NULL);
+      cJSON_Delete(cr);
+      cancelled = 1;
+    }
+    cJSON *msg = NULL;
+    int rc = volfx_next_notification(cli->conn, "job.progress", 200, &msg, NULL);
+    if (rc == VOLFX_E_TIMEOUT || rc == VOLFX_E_INTR) {
+      continue;
+    }
+    if (rc != 0) {
+      volfx_error_t e = {.code = rc};
+      snprintf(e.message, sizeof(e.message), "%s", volfx_strerror(rc));
+      status = report(cli, rc, &e);
+      break;
+    }
+    const cJSON *jp = cJSON_GetObjectItemCaseSensitive(msg, "params");
+    if (cJSON_GetNumberValue(cJSON_GetObjectItemCaseSensitive(jp, "id")) != id) {
+      cJSON_Delete(msg);
+      continue;
+    }
+    const char *state = cJSON_GetStringValue(cJSON_GetObjectItemCaseSensitive(jp, "state"));
+    const char *file = cJSON_GetStringValue(cJSON_GetObjectItemCaseSensitive(jp, "last"));
+    double done = cJSON_GetNumberValue(cJSON_GetObjectItemCaseSensitive(jp, "done"));
+    double total = cJSON_GetNumberValue(cJSON_GetObjectItemCaseSensitive(jp, "total"));
+    if (verbose && file != NULL && file[0] != '\0') {
+      printf("%.0f/%.0f %s\n", done, total, file);
+      fflush(stdout);
+    }
+    int ended = state == NULL || strcmp(state, "running") != 0;
+    if (ended) {
+      const char *why = cJSON_GetStringValue(cJSON_GetObjectItemCaseSensitive(jp, "error"));
+      printf("sequence: job %.0f %s, %.0f of %.0f frames\n", id, state ? state : "?", done, total);
+      if (why != NULL) {
+        diag_prefix(cli);
+        fprintf(stderr, "%s\n", why);
+      }
+      status = state != NULL && strcmp(state, "done") == 0 ? 0 : EXIT_FAIL;
+    }
+    cJSON_Delete(msg);
+    if (ended) {
+      break;
+    }
+  }
+  catch_sigint(0);
+  return status;
+}
+
 /* call METHOD [JSON_PARAMS] */
 static int cmd_call(const cli_t *cli, int argc, char **argv) {
   if (argc < 2 || argc > 3) {
@@ -820,6 +926,8 @@ static int run_command(cli_t *cli, int argc, char **argv) {
     return cmd_render(cli, n, words);
   } else if (strcmp(c, "watch") == 0) {
     return cmd_watch(cli, n, words);
+  } else if (strcmp(c, "sequence") == 0) {
+    return cmd_sequence(cli, n, words);
   } else if (strcmp(c, "stats") == 0) {
     return cmd_simple(cli, n, "stats", 0);
   } else if (strcmp(c, "discover") == 0) {

@@ -33,8 +33,8 @@ void render_job_stats(server_t *s, const job_t *j);
 /* The work_ms object of a finished job: each pass, "queue" and "total". */
 cJSON *render_job_times(const job_t *j);
 
-/* The params shared by render and frames.subscribe, ended by {0}. */
-#define RENDER_PARAMS_COMMON                                                                       \
+/* The params that describe one frame, shared by render, frames.subscribe and render.sequence. */
+#define RENDER_PARAMS_FRAME                                                                        \
   PARAM_SCENE,                                                                                     \
       {.name = "width",                                                                            \
        .type = SCH_INTEGER,                                                                        \
@@ -70,15 +70,19 @@ cJSON *render_job_times(const job_t *j);
        .type = SCH_ANY,                                                                            \
        .desc = "Members of the scene camera overriding it for this frame.",                        \
        .flags = SCH_NO_DEFAULT},                                                                   \
-      {.name = "encoding",                                                                         \
-       .type = SCH_ENUM,                                                                           \
-       .desc = "binary: an attachment after the line; base64: inline in 'data'.",                  \
-       .enum_values = render_encodings,                                                            \
-       .def_str = "binary"},                                                                       \
   {                                                                                                \
     .name = "png_level", .type = SCH_INTEGER,                                                      \
     .desc = "zlib level for png, or -1 for the fast default (level 1, no filter).", .min = -1,     \
     .max = 9, .def = -1                                                                            \
+  }
+
+/* The params shared by render and frames.subscribe, ended by {0}: a frame's, and how its
+ * bytes travel. */
+#define RENDER_PARAMS_COMMON                                                                       \
+  RENDER_PARAMS_FRAME, {                                                                           \
+    .name = "encoding", .type = SCH_ENUM,                                                          \
+    .desc = "binary: an attachment after the line; base64: inline in 'data'.",                     \
+    .enum_values = render_encodings, .def_str = "binary"                                           \
   }
 
 extern const char *const render_formats[];

@@ -10,6 +10,7 @@
 #include <unistd.h>
 
 #include "frames.h"
+#include "jobs.h"
 #include "log.h"
 #include "server.h"
 
@@ -51,6 +52,7 @@ void conn_close(conn_t *c) {
   c->closing = 1;
   server_t *s = c->srv;
   frames_conn_closed(c);
+  jobs_conn_closed(c);
   if (c->prev)
     c->prev->next = c->next;
   else

@@ -11,6 +11,7 @@
 #include "fluid.h"
 #include "files.h"
 #include "frames.h"
+#include "jobs.h"
 #include "log.h"
 #include "server.h"
 #include "worker.h"
@@ -134,6 +135,7 @@ static void do_stop(uv_idle_t *idle) {
     server_remove_scene(s, s->scenes);
   uv_close((uv_handle_t *)&s->sigint, on_closed_nothing);
   uv_close((uv_handle_t *)&s->sigterm, on_closed_nothing);
+  jobs_server_stopping(s);
   /* Answers every queued render; the replies are written before the connections close. */
   worker_stop(s->worker);
   s->worker = NULL;

@@ -23,6 +23,7 @@ typedef struct sub sub_t;
 typedef struct worker worker_t;
 typedef struct method method_t;
 typedef struct fluid_host fluid_host_t;
+typedef struct seq_job seq_job_t;
 
 /* One response (or nothing, for a notification) inside a reply. */
 typedef struct reply_part {
@@ -107,6 +108,8 @@ struct server {
   worker_t *worker;
   char platform[256], device[256];
   uint64_t next_sub_id;
+  seq_job_t *jobs; /* Background jobs, running and recently ended, newest first (jobs.h). */
+  uint64_t next_job_id;
   unsigned nsubs;
   stats_t stats;
   int stopping;

@@ -1,0 +1,16 @@
+/*
+ * Background jobs (render.sequence, job.list, job.cancel): frame sequences rendered into files
+ * under the data directory, owned by the server rather than by a connection.
+ */
+#ifndef VOLFX_JOBS_H
+#define VOLFX_JOBS_H
+
+#include "server.h"
+
+/* The connection closed: its jobs run on, without progress notifications. */
+void jobs_conn_closed(conn_t *c);
+/* The server is stopping: every running job fails and none starts more work. Call before the
+ * worker stops, so that the jobs it cancels find theirs ended. */
+void jobs_server_stopping(server_t *s);
+
+#endif
