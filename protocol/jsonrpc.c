@@ -413,6 +413,9 @@ char *proto_print_line(const cJSON *msg, size_t *len) {
   char *line = malloc(n + 2);
   if (line != NULL) {
     memcpy(line, text, n);
+    /* Bytes >= 0x80 occur only inside strings, where '?' keeps the JSON what it was. */
+    if (!proto_utf8_valid(line, n))
+      proto_utf8_scrub(line, n);
     line[n] = '\n';
     line[n + 1] = '\0';
     if (len != NULL)

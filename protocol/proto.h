@@ -108,6 +108,13 @@ size_t proto_reader_pending(const proto_reader_t *r);
 
 /* 1 when 's' is well-formed UTF-8 (no overlongs, no surrogates, nothing above U+10FFFF). */
 int proto_utf8_valid(const char *s, size_t n);
+/*
+ * Makes the 'n' bytes at 's' well-formed UTF-8 in place: each byte that does not start a
+ * well-formed sequence becomes '?'. Text the server writes passes through it when it is not
+ * valid already, so a message that quotes a client's string cut short by a size limit (in the
+ * middle of a character) still reaches the client as UTF-8.
+ */
+void proto_utf8_scrub(char *s, size_t n);
 /* 1 when the JSON text nests arrays/objects no deeper than 'max_depth' (strings skipped). */
 int proto_json_depth_ok(const char *s, size_t n, int max_depth);
 

@@ -9,9 +9,51 @@
 #include "proto.h"
 
 /*
- * 1 when the 'n' bytes at 's' are well-formed UTF-8: every sequence is the shortest encoding
- * of its code point, no code point is a UTF-16 surrogate (U+D800-U+DFFF) or above U+10FFFF,
- * and the text does not end inside a sequence. NUL bytes are valid UTF-8 and are accepted.
+ * The length of the well-formed UTF-8 sequence that starts 'p' ('left' bytes available, at
+ * least one), or 0 when none does: the sequence must be the shortest encoding of its code
+ * point, no UTF-16 surrogate (U+D800-U+DFFF) and not above U+10FFFF.
+ */
+static size_t seq_len(const unsigned char *p, size_t left) {
+  unsigned char c = p[0];
+  if (c < 0x80)
+    return 1;
+  /* The table of RFC 3629 §4: the lead byte fixes the length and the range of the first
+   * continuation byte, which is where overlongs, surrogates and values past U+10FFFF show. */
+  size_t len;
+  unsigned char lo = 0x80, hi = 0xBF;
+  if (c >= 0xC2 && c <= 0xDF) {
+    len = 2;
+  } else if (c == 0xE0) {
+    len = 3;
+    lo = 0xA0;
+  } else if (c == 0xED) {
+    len = 3;
+    hi = 0x9F;
+  } else if (c >= 0xE1 && c <= 0xEF) {
+    len = 3;
+  } else if (c == 0xF0) {
+    len = 4;
+    lo = 0x90;
+  } else if (c == 0xF4) {
+    len = 4;
+    hi = 0x8F;
+  } else if (c >= 0xF1 && c <= 0xF3) {
+    len = 4;
+  } else {
+    return 0; /* A stray continuation byte, an overlong lead C0/C1, or F5-FF. */
+  }
+  if (left < len || p[1] < lo || p[1] > hi)
+    return 0;
+  for (size_t k = 2; k < len; k++) {
+    if ((p[k] & 0xC0) != 0x80)
+      return 0;
+  }
+  return len;
+}
+
+/*
+ * 1 when the 'n' bytes at 's' are well-formed UTF-8 (see seq_len) and the text does not end
+ * inside a sequence. NUL bytes are valid UTF-8 and are accepted.
  */
 int proto_utf8_valid(const char *s, size_t n) {
   const unsigned char *p = (const unsigned char *)s;
@@ -28,50 +70,24 @@ int proto_utf8_valid(const char *s, size_t n) {
     }
     if (i == n)
       break;
-
-    unsigned char c = p[i];
-    if (c < 0x80) {
-      i++;
-      continue;
-    }
-
-    /* The table of RFC 3629 §4: the lead byte fixes the length and the range of the first
-     * continuation byte, which is where overlongs, surrogates and values past U+10FFFF show. */
-    size_t len;
-    unsigned char lo = 0x80, hi = 0xBF;
-    if (c >= 0xC2 && c <= 0xDF) {
-      len = 2;
-    } else if (c == 0xE0) {
-      len = 3;
-      lo = 0xA0;
-    } else if (c == 0xED) {
-      len = 3;
-      hi = 0x9F;
-    } else if (c >= 0xE1 && c <= 0xEF) {
-      len = 3;
-    } else if (c == 0xF0) {
-      len = 4;
-      lo = 0x90;
-    } else if (c == 0xF4) {
-      len = 4;
-      hi = 0x8F;
-    } else if (c >= 0xF1 && c <= 0xF3) {
-      len = 4;
-    } else {
-      return 0; /* A stray continuation byte, an overlong lead C0/C1, or F5-FF. */
-    }
-
-    if (n - i < len)
+    size_t len = seq_len(p + i, n - i);
+    if (len == 0)
       return 0;
-    if (p[i + 1] < lo || p[i + 1] > hi)
-      return 0;
-    for (size_t k = 2; k < len; k++) {
-      if ((p[i + k] & 0xC0) != 0x80)
-        return 0;
-    }
     i += len;
   }
   return 1;
+}
+
+void proto_utf8_scrub(char *s, size_t n) {
+  unsigned char *p = (unsigned char *)s;
+  for (size_t i = 0; i < n;) {
+    size_t len = seq_len(p + i, n - i);
+    if (len == 0) {
+      p[i] = '?';
+      len = 1;
+    }
+    i += len;
+  }
 }
 
 /*

@@ -327,6 +327,22 @@ def unknown_scene_and_method(s):
 
 
 @T
+def quoted_names_cut_short(s):
+    """Errors quote what the client sent, cut to a length limit; a cut that falls inside a
+    character must not make the answer invalid UTF-8 (the mock refuses such a line)."""
+    c = s.srv.connect(timeout=10)
+    for n in range(28, 36):
+        for ch in ("\u00e9", "\u20ac", "\U0001F600"):
+            name = "a" + ch * n
+            expect_error(s, c, "scene.save", {"file": name}, E_PARAMS, "file",
+                         "scene.save of a long non-ASCII name (%d x U+%04X)" % (n, ord(ch)))
+            expect_error(s, c, "scene.get", {"scene": name * 4}, (E_PARAMS, E_NOT_FOUND),
+                         "scene", "scene.get of a long non-ASCII scene name")
+    same_conn_ok(s, c, "names cut short")
+    verify(s, "names cut short")
+
+
+@T
 def partial_patch(s):
     c = s.srv.connect(timeout=10)
     fov0 = c.ok("scene.get", {"scene": "bad", "path": "camera.fov_y"})[0]

@@ -549,6 +549,32 @@ static void test_utf8(void) {
     agree &= proto_utf8_valid((char *)text, n) == ref_utf8_valid(text, n);
   }
   CHECK(agree);
+
+  /* Scrubbing: valid text is left alone; any text comes out valid, with only bytes that were
+   * not part of a well-formed sequence turned into '?'. */
+  char fixed[] = "caf\xc3\xa9 \xe2\x82\xac \xf0\x9f\x98\x80";
+  proto_utf8_scrub(fixed, sizeof(fixed) - 1);
+  CHECK(strcmp(fixed, "caf\xc3\xa9 \xe2\x82\xac \xf0\x9f\x98\x80") == 0);
+  char cut[] = "ab\xc3\xa9\xc3";
+  proto_utf8_scrub(cut, sizeof(cut) - 1);
+  CHECK(strcmp(cut, "ab\xc3\xa9?") == 0);
+  char stray[] = "\x80x\xed\xa0\x80\xc0\xaf";
+  proto_utf8_scrub(stray, sizeof(stray) - 1);
+  CHECK(strcmp(stray, "?x?????") == 0);
+  int scrubbed_ok = 1;
+  for (int i = 0; i < 100000; i++) {
+    unsigned char orig[40];
+    size_t n = rng() % sizeof(text);
+    for (size_t k = 0; k < n; k++)
+      orig[k] = text[k] = (unsigned char)(rng() % 4 == 0 ? rng() : rng() % 128);
+    proto_utf8_scrub((char *)text, n);
+    scrubbed_ok &= ref_utf8_valid(text, n);
+    for (size_t k = 0; k < n; k++)
+      scrubbed_ok &= text[k] == orig[k] || (text[k] == '?' && orig[k] >= 0x80);
+    if (ref_utf8_valid(orig, n))
+      scrubbed_ok &= memcmp(text, orig, n) == 0;
+  }
+  CHECK(scrubbed_ok);
 }
 
 /* Writes 'depth' nested arrays around 'inner' into 'buf' (open brackets, inner, close). */
