@@ -7,6 +7,8 @@
 
 #include "server.h"
 
+/* Jobs running now. */
+int jobs_running(const server_t *s);
 /* The connection closed: its jobs run on, without progress notifications. */
 void jobs_conn_closed(conn_t *c);
 /* The server is stopping: every running job fails and none starts more work. Call before the

@@ -510,6 +510,10 @@ static void job_cancel(call_t *call) {
   call_result(call, job_json(job));
 }
 
+int jobs_running(const server_t *s) {
+  return running_jobs(s, NULL);
+}
+
 void jobs_conn_closed(conn_t *c) {
   for (seq_job_t *job = c->srv->jobs; job; job = job->next)
     if (job->conn == c)

@@ -5,6 +5,7 @@
 #include <string.h>
 
 #include "dispatch.h"
+#include "jobs.h"
 #include "frames.h"
 #include "worker.h"
 
@@ -82,6 +83,7 @@ static void stats(call_t *call) {
   cJSON_AddNumberToObject(r, "fps", stats_fps(&s->stats, now));
   cJSON_AddNumberToObject(r, "render_queue", worker_queue_depth(s->worker));
   cJSON_AddNumberToObject(r, "subscriptions", s->nsubs);
+  cJSON_AddNumberToObject(r, "jobs", jobs_running(s));
   cJSON_AddItemToObject(r, "passes", stats_passes_json(&s->stats));
   cJSON *mem = cJSON_AddObjectToObject(r, "memory");
   cJSON_AddNumberToObject(mem, "rss_bytes", (double)stats_rss_bytes());

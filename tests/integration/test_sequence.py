@@ -139,6 +139,8 @@ def list_cancel_and_closed_connection(s):
     mine = [j for j in jobs.get("jobs", []) if j.get("id") == jid]
     s.check(mine and mine[0].get("done", 0) > done_before, "and keeps writing frames",
             str(mine))
+    st, _ = b.ok("stats")
+    s.eq(st.get("jobs"), 1, "stats counts the running job")
     res, _ = b.ok("job.cancel", {"id": jid})
     s.eq(res.get("state"), "cancelled", "job.cancel ends it")
     time.sleep(0.5)  # Work in flight lands, then nothing more.
@@ -150,6 +152,8 @@ def list_cancel_and_closed_connection(s):
     mine = [j for j in jobs.get("jobs", []) if j.get("id") == jid]
     s.check(mine and mine[0].get("state") == "cancelled", "job.list shows it cancelled",
             str(mine))
+    st, _ = b.ok("stats")
+    s.eq(st.get("jobs"), 0, "and stats no longer counts it")
     expect_error(s, b, "job.cancel", {"id": 999999}, E_NOT_FOUND, "id")
     b.ok("scene.delete", {"name": "long"})
 
