@@ -361,6 +361,23 @@ def init_steps_grow_the_cloud(s):
 
 
 @T
+def demo_opens_on_a_cloud(s):
+    """The demo preset's cloud is grown at seeding, so its first frame shows it."""
+    c = s.srv.connect()
+    c.ok("scene.create", {"name": "demo", "preset": "demo"})
+    r, att = get(c, "demo", "cld")
+    s.check(r.get("step", 0) > 0 and sum(att) > 0, "the demo's cloud has grown at frame 0",
+            (r.get("step"), sum(att or b"")))
+    p = {"scene": "demo", "width": 96, "height": 54, "format": "rgba8"}
+    with_cloud, a = c.ok("render", p, timeout=60)
+    without, b = c.ok("render", dict(p, layers=["objects", "volumes", "fluid", "waves"]),
+                      timeout=60)
+    s.check("volumes" in with_cloud.get("work_ms", {}), "the demo's first frame draws volumes")
+    differ = sum(1 for i in range(0, len(a), 4) if abs(a[i] - b[i]) > 8)
+    s.check(0 < differ < len(a) // 16, "the cloud covers part of the demo's sky", differ)
+
+
+@T
 def snapshot_carries_cells(s):
     c = s.srv.connect()
     make(c, "snap", grid=(40, 24, 20), rules="dobashi", p_ext=0.02, wind=0.5, smoothing=0.5)
