@@ -29,6 +29,8 @@
 #define EYE_TARGET_EPS 1e-6
 /* Smallest sine of the angle between camera.up and the view direction (about 0.06 degrees). */
 #define UP_PARALLEL_EPS 1e-3
+/* Most cell-steps cloud.init.steps may take (grid cells x steps): 64^3 x 128, about 0.1 s. */
+#define CLOUD_INIT_STEP_CELLS (1 << 25)
 
 static char *g_data_dir; /* Owned copy of the directory mesh files live under, or NULL. */
 
@@ -842,6 +844,13 @@ static int check_cloud(const cJSON *doc, scene_error_t *err) {
                      "cloud.grid: %g cells is over the limit of %u per side (limits.cloud_side)",
                      n[i], g_cloud_side);
   }
+  /* The seeding steps run on the scene's thread: bounded so that a change cannot stall it. */
+  double steps = get(get(cloud, "init"), "steps")->valuedouble;
+  if (steps * n[0] * n[1] * n[2] > CLOUD_INIT_STEP_CELLS && cJSON_IsTrue(get(cloud, "enabled")))
+    return set_err(err, PROTO_E_LIMIT, "cloud.init.steps",
+                   "cloud.init.steps: %g steps of a %gx%gx%g grid is over the limit of %d "
+                   "cell-steps",
+                   steps, n[0], n[1], n[2], CLOUD_INIT_STEP_CELLS);
   int i = 0;
   for (const cJSON *e = get(cloud, "ellipsoids")->child; e; e = e->next, i++) {
     double r[3];
@@ -895,6 +904,7 @@ static int cloud_config_of(const cJSON *doc, scene_cloud_t *c) {
   const cJSON *init = get(cloud, "init");
   c->init_hum = get(init, "hum")->valuedouble;
   c->init_act = get(init, "act")->valuedouble;
+  c->init_steps = (unsigned)get(init, "steps")->valuedouble;
   return cJSON_IsTrue(get(cloud, "enabled")) ? 0 : -1;
 }
 
@@ -908,10 +918,39 @@ static int cloud_same(const cJSON *a, const cJSON *b, const char *name) {
 }
 
 /*
+ * Takes the cloud's init.steps automaton steps from the freshly seeded '*cells' (replaced by the
+ * result) and fills 'density' with their metaball density, unsmoothed. Returns 0, or -1 on OOM
+ * ('*cells' unchanged).
+ */
+static int cloud_grow(cloud_cells_t **cells, density_grid_t *density, const scene_cloud_t *c) {
+  cloud_cells_t *buf[2] = {cloud_cells_new(c->n), cloud_cells_new(c->n)};
+  if (!buf[0] || !buf[1]) {
+    cloud_cells_unref(buf[0]);
+    cloud_cells_unref(buf[1]);
+    return -1;
+  }
+  const cloud_cells_t *cur = *cells;
+  for (unsigned i = 0; i < c->init_steps; i++) {
+    cloud_step(cur, buf[i % 2], &c->params);
+    cur = buf[i % 2];
+  }
+  int last = (c->init_steps - 1) % 2;
+  if (cloud_density(buf[last], c->radius, density->data) != 0) {
+    cloud_cells_unref(buf[0]);
+    cloud_cells_unref(buf[1]);
+    return -1;
+  }
+  cloud_cells_unref(buf[1 - last]);
+  cloud_cells_unref(*cells);
+  *cells = buf[last];
+  return 0;
+}
+
+/*
  * The cells and density 'doc' gives the scene: none when the cloud is disabled, the scene's
  * own when it was enabled already with the same grid, seed and init, and otherwise freshly
- * seeded cells with no cloud (so a zero density). Sets '*seeded' for fresh cells. Returns 0 or
- * -1 on OOM.
+ * seeded cells, grown by init.steps automaton steps (with none, no cloud and a zero density).
+ * Sets '*seeded' for fresh cells. Returns 0 or -1 on OOM.
  */
 static int cloud_prepare(const scene_t *s, const cJSON *doc, cloud_cells_t **cells,
                          density_grid_t **density, int *seeded, scene_error_t *err) {
@@ -937,6 +976,14 @@ static int cloud_prepare(const scene_t *s, const cJSON *doc, cloud_cells_t **cel
   }
   cloud_cells_seed(*cells, &c.params, c.init_hum, c.init_act);
   *seeded = 1;
+  if (c.init_steps > 0 && cloud_grow(cells, *density, &c) != 0) {
+    cloud_cells_unref(*cells);
+    density_grid_unref(*density);
+    *cells = NULL;
+    *density = NULL;
+    return set_err(err, PROTO_E_INTERNAL, "", "out of memory for a %ux%ux%u cloud", c.n[0], c.n[1],
+                   c.n[2]);
+  }
   return 0;
 }
 

@@ -40,6 +40,7 @@ typedef struct scene_cloud {
   float keep;               /* smoothing */
   unsigned steps_per_frame; /* Automaton steps per simulation step. */
   double init_hum, init_act;
+  unsigned init_steps; /* Automaton steps taken at seeding. */
 } scene_cloud_t;
 
 typedef struct scene {

@@ -784,6 +784,14 @@ static const sch_field_t cloud_init_fields[] = {
      .min = 0,
      .max = 1,
      .def = 0.0005},
+    {.name = "steps",
+     .type = SCH_INTEGER,
+     .desc = "Automaton steps taken at seeding, before the first frame, so that a scene can "
+             "open on a grown cloud (its density shown unsmoothed); at most 2^25 cell-steps "
+             "(grid cells x steps).",
+     .min = 0,
+     .max = 256,
+     .def = 0},
     {0},
 };
 

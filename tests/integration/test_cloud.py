@@ -316,6 +316,68 @@ def reseed_and_render(s):
 
 
 @T
+def init_steps_grow_the_cloud(s):
+    """cloud.init.steps: fresh cells grown at seeding exactly as sim.step would grow them."""
+    c = s.srv.connect()
+    for rules, extra in (("kuromiya", {}),
+                         ("dobashi", dict(p_ext=0.05, p_hum=0.05, p_act=0.01, wind=0.5))):
+        init = {"hum": 0.6, "act": 0.03}
+        a, b = "ia_" + rules, "ib_" + rules
+        make(c, a, rules=rules, metaball_radius=2, init=dict(init, steps=5), **extra)
+        make(c, b, rules=rules, metaball_radius=2, init=dict(init, steps=0), **extra)
+        r, att = get(c, b, "cld")
+        s.eq((r.get("step"), sum(att)), (0, 0), "%s: no seeding steps, no cloud" % rules)
+        c.ok("sim.step", {"scene": b, "steps": 5}, timeout=60)
+        r, att = get(c, a, "cld")
+        s.eq(r.get("step"), 5, "%s: init.steps 5 takes five automaton steps" % rules)
+        s.check(sum(att) > 0, "%s: the seeded cloud has cloud cells" % rules, sum(att))
+        s.eq(c.ok("scene.get", {"scene": a, "path": "sim.frame"})[0], 0,
+             "%s: the seeding steps leave the clock at frame 0" % rules)
+        for f in ("hum", "act", "cld", "density"):
+            s.check(get(c, a, f)[1] == get(c, b, f)[1],
+                    "%s: %s after init.steps 5 equals 5 sim.step calls from the seed" % (rules, f))
+    # Against the reference automaton as well.
+    make(c, "iz", init={"hum": 0.6, "act": 0.03})
+    cells = [list(get(c, "iz", f)[1]) for f in ("hum", "act", "cld")]
+    for _ in range(3):
+        cells = list(ref_step(*cells, (NX, NY, NZ)))
+    c.ok("scene.set", {"scene": "iz", "path": "cloud.init.steps", "value": 3})
+    for f, want in zip(("hum", "act", "cld"), cells):
+        s.check(get(c, "iz", f)[1] == bytes(want),
+                "changing init.steps reseeds and grows %s as the reference does" % f)
+    # Bounded: 2^25 cell-steps; nothing changes when refused.
+    before = get(c, "iz", "cld")[1]
+    expect_error(s, c, "scene.set", {"scene": "iz", "patch": {"cloud": {
+        "grid": [64, 64, 64], "init": {"steps": 129}}}}, E_LIMIT, "cloud.init.steps",
+        "init.steps over 2^25 cell-steps")
+    expect_error(s, c, "scene.set", {"scene": "iz", "path": "cloud.init.steps", "value": 257},
+                 E_PARAMS, "cloud.init.steps", "init.steps over 256")
+    s.eq(c.ok("scene.get", {"scene": "iz", "path": "cloud.init.steps"})[0], 3,
+         "the refused patches left init.steps")
+    s.check(get(c, "iz", "cld")[1] == before, "the refused patches left the cells")
+    c.ok("scene.set", {"scene": "iz", "patch": {"cloud": {"grid": [64, 64, 64],
+                                                         "init": {"steps": 128}}}}, timeout=60)
+    s.eq(get(c, "iz", "cld")[0].get("step"), 128, "128 steps of 64^3 are within the limit")
+
+
+@T
+def demo_opens_on_a_cloud(s):
+    """The demo preset's cloud is grown at seeding, so its first frame shows it."""
+    c = s.srv.connect()
+    c.ok("scene.create", {"name": "demo", "preset": "demo"})
+    r, att = get(c, "demo", "cld")
+    s.check(r.get("step", 0) > 0 and sum(att) > 0, "the demo's cloud has grown at frame 0",
+            (r.get("step"), sum(att or b"")))
+    p = {"scene": "demo", "width": 96, "height": 54, "format": "rgba8"}
+    with_cloud, a = c.ok("render", p, timeout=60)
+    without, b = c.ok("render", dict(p, layers=["objects", "volumes", "fluid", "waves"]),
+                      timeout=60)
+    s.check("volumes" in with_cloud.get("work_ms", {}), "the demo's first frame draws volumes")
+    differ = sum(1 for i in range(0, len(a), 4) if abs(a[i] - b[i]) > 8)
+    s.check(0 < differ < len(a) // 16, "the cloud covers part of the demo's sky", differ)
+
+
+@T
 def snapshot_carries_cells(s):
     c = s.srv.connect()
     make(c, "snap", grid=(40, 24, 20), rules="dobashi", p_ext=0.02, wind=0.5, smoothing=0.5)

@@ -150,7 +150,8 @@ def side_limit(s):
     path = os.path.join(d, "volfxd.json")
     with open(path, "w") as f:
         f.write(mock.dumps({"limits": {"cloud_side": 8}}))
-    with mock.Server(s.bin, "--config", path) as srv:
+    # The demo's cloud grid is over a cloud_side of 8, so the main scene is another preset.
+    with mock.Server(s.bin, "--config", path, "--scene", "paper-000") as srv:
         with open(os.path.join(srv.data_dir, "g.f32"), "wb") as f:
             f.write(f32([0.25] * 9 * 2 * 2))
         c = srv.connect()
