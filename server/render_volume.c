@@ -174,6 +174,25 @@ static int bake_noise(const rvolume_t *v, vol_entry_t *e) {
  * slice before) times exp(-optical depth of the step between them), the density integrated by
  * the trapezoid rule. A point that falls beside the grid sees the light unobstructed.
  */
+/* One axis of the step up the light: the two voxels (as offsets) either side of the point
+ * i + d and the weight of the second, or ok = 0 where the point lies beside the grid. */
+typedef struct axis_tap {
+  size_t i0, i1;
+  float f;
+  int ok;
+} axis_tap_t;
+
+static void axis_taps(axis_tap_t *t, uint32_t n, double d, size_t stride) {
+  for (uint32_t i = 0; i < n; i++) {
+    double p = i + d;
+    t[i].ok = p >= -0.5 && p <= n - 0.5;
+    double q = p < 0 ? 0 : p > n - 1.0 ? n - 1.0 : p;
+    uint32_t i0 = (uint32_t)q, i1 = i0 + 1 < n ? i0 + 1 : i0;
+    t[i].i0 = i0 * stride, t[i].i1 = i1 * stride;
+    t[i].f = (float)(q - i0);
+  }
+}
+
 static int light_grid(vol_entry_t *e, const float *dens, float sigma, const float l[3]) {
   uint32_t *n = e->dims;
   size_t nl = (size_t)n[0] * n[1] * n[2];
@@ -207,37 +226,50 @@ static int light_grid(vol_entry_t *e, const float *dens, float sigma, const floa
   double db = lv[b] * step, dc = lv[c] * step;
   int dir = lv[a] > 0 ? 1 : -1; /* The light lies towards increasing a when 1. */
   size_t stride[3] = {1, n[0], (size_t)n[0] * n[1]};
+  /* Where the ray from a voxel of row j (axis b) or column k (axis c) meets the slice up the
+   * light is the same in every slice: its two neighbours and weight per row and per column,
+   * or -1 where it falls beside the grid. */
+  axis_tap_t *tb = malloc(n[b] * sizeof *tb), *tc = malloc(n[c] * sizeof *tc);
+  if (tb == NULL || tc == NULL) {
+    free(tb);
+    free(tc);
+    free(sg);
+    return -1;
+  }
+  axis_taps(tb, n[b], db, stride[b]);
+  axis_taps(tc, n[c], dc, stride[c]);
+  float half = (float)(-0.5 * step);
+  float *lg = e->lgrid;
   int first = dir > 0 ? (int)n[a] - 1 : 0;
   for (int s = first; s >= 0 && s < (int)n[a]; s -= dir) {
-    for (uint32_t j = 0; j < n[b]; j++)
+    int up = s + dir, has_up = up >= 0 && up < (int)n[a];
+    size_t base = s * stride[a], ubase = up * stride[a];
+    for (uint32_t j = 0; j < n[b]; j++) {
+      const axis_tap_t *pj = &tb[j];
       for (uint32_t k = 0; k < n[c]; k++) {
-        size_t at = s * stride[a] + j * stride[b] + k * stride[c];
-        double here = sg[at], t_up = 1, s_up = here;
-        double pb = j + db, pc = k + dc;
-        int up = s + dir;
-        if (up >= 0 && up < (int)n[a] && pb >= -0.5 && pb <= n[b] - 0.5 && pc >= -0.5 &&
-            pc <= n[c] - 0.5) {
-          double qb = pb < 0 ? 0 : pb > n[b] - 1.0 ? n[b] - 1.0 : pb;
-          double qc = pc < 0 ? 0 : pc > n[c] - 1.0 ? n[c] - 1.0 : pc;
-          int b0 = (int)qb, c0 = (int)qc;
-          int b1 = b0 + 1 < (int)n[b] ? b0 + 1 : b0, c1 = c0 + 1 < (int)n[c] ? c0 + 1 : c0;
-          double fb = qb - b0, fc = qc - c0;
-          size_t base = up * stride[a];
-          size_t i00 = base + b0 * stride[b] + c0 * stride[c];
-          size_t i10 = base + b1 * stride[b] + c0 * stride[c];
-          size_t i01 = base + b0 * stride[b] + c1 * stride[c];
-          size_t i11 = base + b1 * stride[b] + c1 * stride[c];
-          double w00 = (1 - fb) * (1 - fc), w10 = fb * (1 - fc), w01 = (1 - fb) * fc, w11 = fb * fc;
-          t_up =
-              w00 * e->lgrid[i00] + w10 * e->lgrid[i10] + w01 * e->lgrid[i01] + w11 * e->lgrid[i11];
-          s_up = w00 * sg[i00] + w10 * sg[i10] + w01 * sg[i01] + w11 * sg[i11];
-          e->lgrid[at] = (float)t_up * expf((float)(-0.5 * step * (here + s_up)));
+        const axis_tap_t *pk = &tc[k];
+        size_t at = base + j * stride[b] + k * stride[c];
+        float here = sg[at], t_up = 1, s_up = here;
+        if (has_up && pj->ok && pk->ok) {
+          size_t i00 = ubase + pj->i0 + pk->i0, i10 = ubase + pj->i1 + pk->i0;
+          size_t i01 = ubase + pj->i0 + pk->i1, i11 = ubase + pj->i1 + pk->i1;
+          float fb = pj->f, fc = pk->f;
+          t_up = (1 - fc) * ((1 - fb) * lg[i00] + fb * lg[i10]) +
+                 fc * ((1 - fb) * lg[i01] + fb * lg[i11]);
+          s_up = (1 - fc) * ((1 - fb) * sg[i00] + fb * sg[i10]) +
+                 fc * ((1 - fb) * sg[i01] + fb * sg[i11]);
         } else {
           /* The ray leaves the box within about half a step. */
-          e->lgrid[at] = expf((float)(-0.5 * step * here));
+          s_up = 0;
         }
+        float tau = here + s_up;
+        /* Empty space passes the light on unchanged, without the exponential. */
+        lg[at] = tau > 0 ? t_up * expf(half * tau) : t_up;
       }
+    }
   }
+  free(tb);
+  free(tc);
   free(sg);
   return 0;
 }
@@ -566,6 +598,7 @@ int render_pass_volumes(renderer_t *r, const render_scene_t *scene, unsigned lay
   }
   const float *l = r->frame.light_dir;
   int changed = 0;
+
   for (int i = 0; i < n; i++) {
     float sigma = list[i]->density;
     if (entry_matches(&vs->ents[i], list[i], sigma, l))
