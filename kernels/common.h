@@ -144,11 +144,14 @@ typedef struct vfx_fluid {
   float shininess;  /* Blinn-Phong exponent from the roughness. */
   float box_min[3]; /* The grid's bounds. */
   float box_max[3];
+  int rows; /* Rows of the per-pixel buffers: packets below them are not traced. */
 } vfx_fluid_t;
 
 #define FLUID_PAD 1e18f /* Coordinate of padding entries: far from everything, finite squared. */
-#define FLUID_LX 8      /* Work-group of the fluid pass: one pixel per work-item. */
-#define FLUID_LY 8
+#define FLUID_PW 4      /* A fluid work-item traces a packet of FLUID_PW x FLUID_PH pixels, */
+#define FLUID_PH 4      /* one per lane of a float16. */
+#define FLUID_LX 2      /* Work-group of the fluid pass, in packets. */
+#define FLUID_LY 2
 
 #ifdef __OPENCL_VERSION__
 

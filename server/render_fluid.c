@@ -212,6 +212,7 @@ int render_pass_fluid(renderer_t *r, const render_scene_t *scene, int *ran, char
   fl.threshold = fd->threshold;
   fl.min_step = fd->h / 2000;
   fl.tol = fd->h * 1e-3f;
+  fl.rows = (int)r->rows;
   double ior = isfinite(fd->ior) && fd->ior > 0 ? fd->ior : 1.33;
   double f0 = (ior - 1) / (ior + 1);
   fl.f0 = (float)(f0 * f0);
@@ -244,7 +245,10 @@ int render_pass_fluid(renderer_t *r, const render_scene_t *scene, int *ran, char
     cr = clSetKernelArg(k, 4, sizeof(cl_mem), &r->linear);
   if (cr == CL_SUCCESS)
     cr = clSetKernelArg(k, 5, sizeof(cl_mem), &r->depth);
-  size_t global[2] = {r->pitch, r->rows};
+  /* A work-item per packet of FLUID_PW x FLUID_PH pixels; packets past the buffers' rows and
+   * pitch are not traced. */
+  size_t global[2] = {round_up(round_up(r->pitch, FLUID_PW) / FLUID_PW, r->fluid_local[0]),
+                      round_up(round_up(r->rows, FLUID_PH) / FLUID_PH, r->fluid_local[1])};
   if (cr == CL_SUCCESS)
     cr = clEnqueueNDRangeKernel(r->dev.queue, k, 2, NULL, global, r->fluid_local, 0, NULL, NULL);
   if (cr == CL_SUCCESS)
