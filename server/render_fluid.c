@@ -1,6 +1,6 @@
 /*
- * The fluid pass: the particles sorted into a uniform grid each frame (padded per-cell lists
- * on the device) and ray cast as metaballs by kernels/fluid.cl, depth-tested against the
+ * The fluid pass: the particles sorted into a uniform grid each frame (per-cell lists on the
+ * device) and ray cast as metaballs by kernels/fluid.cl, depth-tested against the
  * objects.
  */
 #include <math.h>
@@ -11,24 +11,27 @@
 /* ---- Fluid --------------------------------------------------------------------------------- */
 
 #define FLUID_THREAD_MIN 8192 /* Particles in a half below which the build stays on one thread. */
-#define FLUID_AXIS_MAX 8      /* Most cells a particle reaches along one axis (cells >= h / 3). */
+#define FLUID_AXIS_MAX                                                                             \
+  4 /* Most cells a particle reaches along one axis (cells >= h, and rounding). */
 
 /*
  * Along axis 'a', the first cell '*lo' of the run of at most FLUID_AXIS_MAX cells that the
  * ball of radius 'h' about coordinate 'p' reaches, and per cell of it the squared distance from
- * p to the cell's slab (0 inside). Returns the number of cells.
+ * p to the cell's slab (0 inside). Returns the number of cells. In float, with truncation for
+ * floor (the clamp to the grid takes care of the negative side): the distance test's margin
+ * covers the rounding.
  */
-static int fluid_axis(const vfx_fluid_t *fl, float p, double h, int a, int *lo, double *d2) {
-  double cell = fl->cell, o = fl->origin[a];
-  double l = floor((p - h - o) / cell), u = floor((p + h - o) / cell);
+static inline int fluid_axis(const vfx_fluid_t *fl, float p, float h, int a, int *lo, float *d2) {
+  float cell = fl->cell, o = fl->origin[a], u0 = (p - h - o) * fl->inv_cell;
+  float u1 = (p + h - o) * fl->inv_cell;
   int n = fl->dims[a];
-  int first = l < 0 ? 0 : l >= n ? n - 1 : (int)l;
-  int last = u < 0 ? 0 : u >= n ? n - 1 : (int)u;
+  int first = u0 < 0 ? 0 : u0 >= n ? n - 1 : (int)u0;
+  int last = u1 < 0 ? 0 : u1 >= n ? n - 1 : (int)u1;
   if (last - first >= FLUID_AXIS_MAX)
     last = first + FLUID_AXIS_MAX - 1;
   for (int c = first; c <= last; c++) {
-    double s0 = o + c * cell, s1 = s0 + cell;
-    double e = p < s0 ? s0 - p : p > s1 ? p - s1 : 0;
+    float s0 = o + c * cell, s1 = s0 + cell;
+    float e = p < s0 ? s0 - p : p > s1 ? p - s1 : 0;
     d2[c - first] = e * e;
   }
   *lo = first;
@@ -55,14 +58,14 @@ static void *fluid_scan(void *arg) {
   const fluid_scan_t *w = arg;
   const vfx_fluid_t *fl = w->fl;
   float h = w->fd->h, *out = w->out;
-  double h2 = (double)h * h * 1.0002 + 1e-12;
+  float h2 = h * h * 1.0002f + 1e-12f;
   size_t stride = w->stride;
   for (uint32_t i = w->i0; i < w->i1; i++) {
     const float *p = w->fd->positions + 3 * (size_t)i;
     if (!isfinite(p[0]) || !isfinite(p[1]) || !isfinite(p[2]))
       continue;
     int x0, y0, z0;
-    double dx2[FLUID_AXIS_MAX], dy2[FLUID_AXIS_MAX], dz2[FLUID_AXIS_MAX];
+    float dx2[FLUID_AXIS_MAX], dy2[FLUID_AXIS_MAX], dz2[FLUID_AXIS_MAX];
     int nx = fluid_axis(fl, p[0], h, 0, &x0, dx2);
     int ny = fluid_axis(fl, p[1], h, 1, &y0, dy2);
     int nz = fluid_axis(fl, p[2], h, 2, &z0, dz2);
@@ -70,7 +73,7 @@ static void *fluid_scan(void *arg) {
       if (dz2[k] > h2)
         continue;
       for (int j = 0; j < ny; j++) {
-        double dyz = dz2[k] + dy2[j];
+        float dyz = dz2[k] + dy2[j];
         if (dyz > h2)
           continue;
         size_t row = ((size_t)(z0 + k) * fl->dims[1] + (size_t)(y0 + j)) * fl->dims[0] + x0;
@@ -157,7 +160,7 @@ static long fluid_build(renderer_t *r, const rfluid_t *fd, vfx_fluid_t *fl) {
   uint32_t half = fd->count / 2;
   fluid_scan_t w[2] = {{fl, fd, 0, half, cur0, NULL, 0}, {fl, fd, half, fd->count, cur1, NULL, 0}};
   fluid_scan_both(w);
-  /* Starts of the lists, each padded to a multiple of 8. */
+  /* Starts of the lists. */
   size_t at = 0;
   for (size_t c = 0; c < ncell; c++) {
     int32_t m0 = cur0[c], m = m0 + cur1[c];
@@ -165,7 +168,7 @@ static long fluid_build(renderer_t *r, const rfluid_t *fd, vfx_fluid_t *fl) {
     cells[2 * c + 1] = m;
     cur0[c] = (int32_t)at;
     cur1[c] = (int32_t)at + m0;
-    at += (size_t)(m + 7) & ~(size_t)7;
+    at += (size_t)m;
   }
   size_t stride = at; /* > 0: every particle lists in its own cell. */
   if (stride > INT32_MAX / 3 ||
@@ -176,12 +179,6 @@ static long fluid_build(renderer_t *r, const rfluid_t *fd, vfx_fluid_t *fl) {
   for (int k = 0; k < 2; k++)
     w[k].out = out, w[k].stride = stride;
   fluid_scan_both(w);
-  /* The padding after each list, at FLUID_PAD where the field is zero. */
-  for (size_t c = 0; c < ncell; c++) {
-    size_t at = (size_t)cells[2 * c], m = (size_t)cells[2 * c + 1];
-    for (size_t e = at + m; e < at + ((m + 7) & ~(size_t)7); e++)
-      out[e] = out[stride + e] = out[2 * stride + e] = FLUID_PAD;
-  }
   return (long)ncell;
 }
 
