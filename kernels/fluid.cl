@@ -85,22 +85,26 @@ static inline int fluid_hmax(pi v) {
  */
 
 /* What one pass over a list gives the rays of a packet, per lane: F, S = sum of s_j, A = sum
- * of s_j k_j, the nearest particle's sigma_j (-2 when none is within 3h) and G at the steps of
- * FLUID_LADDER (units of h). */
+ * of s_j k_j, the nearest particle's sigma_j (-2 when none is within 3h) and G at the four
+ * steps of the lane's ladder (units of h). */
 typedef struct {
   pf f, s, a, near_sigma, g0, g1, g2, g3;
 } fluid_sums_t;
 
-/* The fixed steps (units of h) at which every march sample evaluates G. */
-#define FLUID_L0 0.1f
-#define FLUID_L1 0.2f
-#define FLUID_L2 0.4f
-#define FLUID_L3 0.8f
+/* A march sample evaluates G at the steps FLUID_RUNG0-2 and 1 times D (units of h), where D is
+ * the distance to the end of the sample's cell, at most FLUID_REACH: beyond that end the cell's
+ * list no longer bounds the field, and a ladder that ends there lets a step reach it whenever
+ * that is safe, so that the rays of a packet cross cell faces together. */
+#define FLUID_REACH 1.0f
+#define FLUID_RUNG0 0.1f
+#define FLUID_RUNG1 0.25f
+#define FLUID_RUNG2 0.55f
 
 /* The sums of fluid_sums_t at the points (x, y, z) of the lanes along the directions (ux, uy,
- * uz), over the 'm' particles of the list at 'first'. */
+ * uz), over the 'm' particles of the list at 'first', with G at the steps l0-l3. */
 static inline fluid_sums_t fluid_sums(__global const float *restrict pos, int stride, int first,
-                                      int m, pf x, pf y, pf z, pf ux, pf uy, pf uz, float inv_h) {
+                                      int m, pf x, pf y, pf z, pf ux, pf uy, pf uz, float inv_h,
+                                      pf l0, pf l1, pf l2, pf l3) {
   pf f = 0.0f, s = 0.0f, a = 0.0f, near = -2.0f, g0 = 0.0f, g1 = 0.0f, g2 = 0.0f, g3 = 0.0f;
   __global const float *py = pos + stride, *pz = pos + 2 * stride;
   for (int i = first; i < first + m; i++) {
@@ -116,8 +120,8 @@ static inline fluid_sums_t fluid_sums(__global const float *restrict pos, int st
     s += sj;
     a += sj * kp;
     near = max(near, sg);
-    pf u0 = max(sg + FLUID_L0 * kp, 0.0f), u1 = max(sg + FLUID_L1 * kp, 0.0f);
-    pf u2 = max(sg + FLUID_L2 * kp, 0.0f), u3 = max(sg + FLUID_L3 * kp, 0.0f);
+    pf u0 = max(sg + l0 * kp, 0.0f), u1 = max(sg + l1 * kp, 0.0f);
+    pf u2 = max(sg + l2 * kp, 0.0f), u3 = max(sg + l3 * kp, 0.0f);
     g0 += u0 * u0, g1 += u1 * u1, g2 += u2 * u2, g3 += u3 * u3;
   }
   return (fluid_sums_t){f, s, a, near, g0, g1, g2, g3};
@@ -139,16 +143,16 @@ static inline pf fluid_field(__global const float *restrict pos, int stride, int
 
 /*
  * A safe step (units of h) from the sums 'q' at the current point; the list holds 'm'
- * particles. The longest of: the ladder's steps with G below t2 = T^2; the distance -near_sigma
- * no particle reaches within, which keeps F = 0; and, bounding every k_j by 1, G(delta) <= F
- * + 2 delta S + m delta^2, below t2 for delta < (t2 - F) / (S + sqrt(S^2 + m (t2 - F))) (the
- * positive root, written without cancellation).
+ * particles. The longest of: the ladder's steps l0-l3 with G below t2 = T^2; the distance
+ * -near_sigma no particle reaches within, which keeps F = 0; and, bounding every k_j by 1,
+ * G(delta) <= F + 2 delta S + m delta^2, below t2 for delta < (t2 - F) / (S + sqrt(S^2 + m
+ * (t2 - F))) (the positive root, written without cancellation).
  */
-static inline pf fluid_step(fluid_sums_t q, float t2, pf m) {
+static inline pf fluid_step(fluid_sums_t q, float t2, pf m, pf l0, pf l1, pf l2, pf l3) {
   pf gap = t2 - q.f;
   pf best = fmax(gap / (q.s + sqrt(q.s * q.s + m * gap)), -q.near_sigma);
-  pf l01 = select(select((pf)0.0f, (pf)FLUID_L0, q.g0 < t2), (pf)FLUID_L1, q.g1 < t2);
-  pf l23 = select(select((pf)0.0f, (pf)FLUID_L2, q.g2 < t2), (pf)FLUID_L3, q.g3 < t2);
+  pf l01 = select(select((pf)0.0f, l0, q.g0 < t2), l1, q.g1 < t2);
+  pf l23 = select(select((pf)0.0f, l2, q.g2 < t2), l3, q.g3 < t2);
   return fmax(best, fmax(l01, l23));
 }
 
@@ -305,9 +309,11 @@ __kernel void fluid(vfx_frame_t f, vfx_fluid_t fl, __global const int *restrict 
     int m = fluid_hmax(select((pi)0, lm, g));
     pi gm = g & (mode == FL_MARCH), gl = g & (mode == FL_LOOK), gr = g & (mode == FL_REFINE);
     pf x = ex + ts * dx, y = ey + ts * dy, z = ez + ts * dz;
+    pf l3 = clamp((tb - ts) * fl.inv_h, 0.0f, FLUID_REACH);
+    pf l0 = l3 * FLUID_RUNG0, l1 = l3 * FLUID_RUNG1, l2 = l3 * FLUID_RUNG2;
     fluid_sums_t q;
     if (any(gm))
-      q = fluid_sums(pos, fl.stride, key, m, x, y, z, dx, dy, dz, fl.inv_h);
+      q = fluid_sums(pos, fl.stride, key, m, x, y, z, dx, dy, dz, fl.inv_h, l0, l1, l2, l3);
     else
       q = (fluid_sums_t){fluid_field(pos, fl.stride, key, m, x, y, z, fl.inv_h),
                          0.0f,
@@ -344,7 +350,7 @@ __kernel void fluid(vfx_frame_t f, vfx_fluid_t fl, __global const int *restrict 
     pi ahead = gm & ~inside;
     t = select(t, ts, ahead);
     fa = select(fa, q.f, ahead);
-    pf step = fmax(fluid_step(q, t2, convert_float16(lm)) * h, fl.min_step);
+    pf step = fmax(fluid_step(q, t2, convert_float16(lm), l0, l1, l2, l3) * h, fl.min_step);
     pf lin = select((pf)INFINITY, (t2 - q.f) / (2.0f * q.a), q.a > 0.0f);
     pf tl = t + FLUID_PAST * h * lin;
     pi look = ahead & (lin < FLUID_CLOSE) & (tl < tb);
