@@ -125,15 +125,15 @@ typedef struct vfx_frame {
  * uniform grid of cubic cells of side 'cell' >= h from 'origin', dims[0] x dims[1] x dims[2]
  * cells, x fastest. Cell c lists every particle within h of its box (a particle is listed in
  * each cell it can reach), so the field anywhere in a cell needs only that cell's list. Lists
- * are structure-of-arrays: x at pos[i], y at pos[stride + i], z at pos[2 * stride + i], one
- * after the other in cell order. cells[2c] is the start of cell c's list and cells[2c + 1] the
+ * follow one another in cell order, an entry i being the particle's x, y, z at pos[3i], pos[3i +
+ * 1], pos[3i + 2]. cells[2c] is the start (in entries) of cell c's list and cells[2c + 1] the
  * number of particles in it.
  */
 typedef struct vfx_fluid {
   float origin[3];
   float cell, inv_cell;
   int dims[3];
-  int stride;  /* Floats per coordinate section of the position buffer. */
+  int entries; /* Entries in all the lists, three floats each. */
   float inv_h; /* 1 / h. */
   float h;
   float threshold;  /* T. */

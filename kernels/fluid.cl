@@ -102,13 +102,13 @@ typedef struct {
 
 /* The sums of fluid_sums_t at the points (x, y, z) of the lanes along the directions (ux, uy,
  * uz), over the 'm' particles of the list at 'first', with G at the steps l0-l3. */
-static inline fluid_sums_t fluid_sums(__global const float *restrict pos, int stride, int first,
-                                      int m, pf x, pf y, pf z, pf ux, pf uy, pf uz, float inv_h,
-                                      pf l0, pf l1, pf l2, pf l3) {
+static inline fluid_sums_t fluid_sums(__global const float *restrict pos, int first, int m, pf x,
+                                      pf y, pf z, pf ux, pf uy, pf uz, float inv_h, pf l0, pf l1,
+                                      pf l2, pf l3) {
   pf f = 0.0f, s = 0.0f, a = 0.0f, near = -2.0f, g0 = 0.0f, g1 = 0.0f, g2 = 0.0f, g3 = 0.0f;
-  __global const float *py = pos + stride, *pz = pos + 2 * stride;
-  for (int i = first; i < first + m; i++) {
-    pf vx = pos[i] - x, vy = py[i] - y, vz = pz[i] - z;
+  __global const float *p = pos + 3 * first;
+  for (int i = 0; i < m; i++, p += 3) {
+    pf vx = p[0] - x, vy = p[1] - y, vz = p[2] - z;
     pf r2 = vx * vx + vy * vy + vz * vz;
     pf ir = fluid_rsqrt(max(r2, 1e-30f));
     /* sigma_j and k_j. A hair is added to the cosine so that rounding can only lengthen G's
@@ -128,12 +128,12 @@ static inline fluid_sums_t fluid_sums(__global const float *restrict pos, int st
 }
 
 /* F alone at the lanes' points, over the list at 'first'. */
-static inline pf fluid_field(__global const float *restrict pos, int stride, int first, int m, pf x,
-                             pf y, pf z, float inv_h) {
+static inline pf fluid_field(__global const float *restrict pos, int first, int m, pf x, pf y, pf z,
+                             float inv_h) {
   pf f = 0.0f;
-  __global const float *py = pos + stride, *pz = pos + 2 * stride;
-  for (int i = first; i < first + m; i++) {
-    pf vx = pos[i] - x, vy = py[i] - y, vz = pz[i] - z;
+  __global const float *p = pos + 3 * first;
+  for (int i = 0; i < m; i++, p += 3) {
+    pf vx = p[0] - x, vy = p[1] - y, vz = p[2] - z;
     pf r2 = max(vx * vx + vy * vy + vz * vz, 1e-30f);
     pf sj = max(1.0f - r2 * fluid_rsqrt(r2) * inv_h, 0.0f);
     f += sj * sj;
@@ -313,16 +313,10 @@ __kernel void fluid(vfx_frame_t f, vfx_fluid_t fl, __global const int *restrict 
     pf l0 = l3 * FLUID_RUNG0, l1 = l3 * FLUID_RUNG1, l2 = l3 * FLUID_RUNG2;
     fluid_sums_t q;
     if (any(gm))
-      q = fluid_sums(pos, fl.stride, key, m, x, y, z, dx, dy, dz, fl.inv_h, l0, l1, l2, l3);
+      q = fluid_sums(pos, key, m, x, y, z, dx, dy, dz, fl.inv_h, l0, l1, l2, l3);
     else
-      q = (fluid_sums_t){fluid_field(pos, fl.stride, key, m, x, y, z, fl.inv_h),
-                         0.0f,
-                         0.0f,
-                         -2.0f,
-                         0.0f,
-                         0.0f,
-                         0.0f,
-                         0.0f};
+      q = (fluid_sums_t){
+          fluid_field(pos, key, m, x, y, z, fl.inv_h), 0.0f, 0.0f, -2.0f, 0.0f, 0.0f, 0.0f, 0.0f};
     pi inside = q.f >= t2;
 
     /* March samples. Inside at a cell's first sample: the crossing lies in the cell before's
@@ -436,9 +430,9 @@ __kernel void fluid(vfx_frame_t f, vfx_fluid_t fl, __global const int *restrict 
     pi g = todo & (first == key);
     int m = fluid_hmax(select((pi)0, lm, g));
     pf ax = 0.0f, ay = 0.0f, az = 0.0f;
-    __global const float *qy = pos + fl.stride, *qz = pos + 2 * fl.stride;
-    for (int i = key; i < key + m; i++) {
-      pf vx = hx - pos[i], vy = hy - qy[i], vz = hz - qz[i];
+    __global const float *p = pos + 3 * key;
+    for (int i = 0; i < m; i++, p += 3) {
+      pf vx = hx - p[0], vy = hy - p[1], vz = hz - p[2];
       pf r2 = max(vx * vx + vy * vy + vz * vz, 1e-30f), ir = fluid_rsqrt(r2);
       pf wj = max(1.0f - r2 * ir * fl.inv_h, 0.0f) * ir;
       ax += wj * vx, ay += wj * vy, az += wj * vz;

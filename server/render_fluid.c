@@ -38,9 +38,9 @@ static inline int fluid_axis(const vfx_fluid_t *fl, float p, float h, int a, int
 
 /*
  * One pass of the grid build over particles [i0, i1) of 'fd': for every cell c whose box lies
- * closer than h to a particle (see fluid_build), either counts it in cur[c]
- * ('out' NULL) or writes the particle at entry cur[c]++ of the lists in 'out' (x, y and z
- * sections 'stride' apart). Particles with a non-finite coordinate are left out.
+ * closer than h to a particle (see fluid_build), either counts it in cur[c] ('out' NULL) or
+ * writes the particle's x, y, z at entry cur[c]++ of the lists in 'out'. Particles with a
+ * non-finite coordinate are left out.
  */
 typedef struct {
   const vfx_fluid_t *fl;
@@ -48,24 +48,27 @@ typedef struct {
   uint32_t i0, i1;
   int32_t *cur;
   float *out;
-  size_t stride;
 } fluid_scan_t;
 
-static void *fluid_scan(void *arg) {
-  const fluid_scan_t *w = arg;
+/* fluid_scan's pass, with 'write' a constant so that each pass gets a loop of its own. */
+static inline void fluid_scan_pass(const fluid_scan_t *w, int write) {
+  /* Everything the loops read in locals, so that the stores into the lists (which the compiler
+   * must assume may alias them) do not force reloads. */
   const vfx_fluid_t *fl = w->fl;
+  const float *pos = w->fd->positions;
   float h = w->fd->h, *out = w->out;
   float h2 = h * h;
-  size_t stride = w->stride;
+  int32_t *cur = w->cur;
+  size_t d0 = (size_t)fl->dims[0], d1 = (size_t)fl->dims[1];
   for (uint32_t i = w->i0; i < w->i1; i++) {
-    const float *p = w->fd->positions + 3 * (size_t)i;
-    if (!isfinite(p[0]) || !isfinite(p[1]) || !isfinite(p[2]))
+    float px = pos[3 * (size_t)i], py = pos[3 * (size_t)i + 1], pz = pos[3 * (size_t)i + 2];
+    if (!isfinite(px) || !isfinite(py) || !isfinite(pz))
       continue;
     int x0, y0, z0;
     float dx2[FLUID_AXIS_MAX], dy2[FLUID_AXIS_MAX], dz2[FLUID_AXIS_MAX];
-    int nx = fluid_axis(fl, p[0], h, 0, &x0, dx2);
-    int ny = fluid_axis(fl, p[1], h, 1, &y0, dy2);
-    int nz = fluid_axis(fl, p[2], h, 2, &z0, dz2);
+    int nx = fluid_axis(fl, px, h, 0, &x0, dx2);
+    int ny = fluid_axis(fl, py, h, 1, &y0, dy2);
+    int nz = fluid_axis(fl, pz, h, 2, &z0, dz2);
     for (int k = 0; k < nz; k++) {
       if (dz2[k] >= h2)
         continue;
@@ -73,22 +76,27 @@ static void *fluid_scan(void *arg) {
         float dyz = dz2[k] + dy2[j];
         if (dyz >= h2)
           continue;
-        size_t row = ((size_t)(z0 + k) * fl->dims[1] + (size_t)(y0 + j)) * fl->dims[0] + x0;
+        int32_t *row = cur + ((size_t)(z0 + k) * d1 + (size_t)(y0 + j)) * d0 + x0;
         for (int q = 0; q < nx; q++) {
           if (dyz + dx2[q] >= h2)
             continue;
-          int32_t *c = w->cur + row + q;
-          if (out != NULL) {
-            size_t at = (size_t)*c;
-            out[at] = p[0];
-            out[stride + at] = p[1];
-            out[2 * stride + at] = p[2];
+          if (write) {
+            float *e = out + 3 * (size_t)row[q];
+            e[0] = px, e[1] = py, e[2] = pz;
           }
-          (*c)++;
+          row[q]++;
         }
       }
     }
   }
+}
+
+static void *fluid_scan(void *arg) {
+  const fluid_scan_t *w = arg;
+  if (w->out != NULL)
+    fluid_scan_pass(w, 1);
+  else
+    fluid_scan_pass(w, 0);
   return NULL;
 }
 
@@ -160,7 +168,7 @@ static long fluid_build(renderer_t *r, const rfluid_t *fd, vfx_fluid_t *fl) {
   int32_t *cells = r->host_fcells, *cur0 = cells + 2 * ncell, *cur1 = cur0 + ncell;
   memset(cur0, 0, 2 * ncell * sizeof(int32_t));
   uint32_t half = fd->count / 2;
-  fluid_scan_t w[2] = {{fl, fd, 0, half, cur0, NULL, 0}, {fl, fd, half, fd->count, cur1, NULL, 0}};
+  fluid_scan_t w[2] = {{fl, fd, 0, half, cur0, NULL}, {fl, fd, half, fd->count, cur1, NULL}};
   fluid_scan_both(w);
   /* Starts of the lists. */
   size_t at = 0;
@@ -172,14 +180,13 @@ static long fluid_build(renderer_t *r, const rfluid_t *fd, vfx_fluid_t *fl) {
     cur1[c] = (int32_t)at + m0;
     at += (size_t)m;
   }
-  size_t stride = at; /* > 0: every particle lists in its own cell. */
-  if (stride > INT32_MAX / 3 ||
-      grow_staging((void **)&r->host_fpos, &r->host_fpos_cap, 3 * stride, sizeof(float)))
+  /* > 0: every particle lists in its own cell. */
+  if (at > INT32_MAX / 3 ||
+      grow_staging((void **)&r->host_fpos, &r->host_fpos_cap, 3 * at, sizeof(float)))
     return -1;
-  float *out = r->host_fpos;
-  fl->stride = (int)stride;
+  fl->entries = (int)at;
   for (int k = 0; k < 2; k++)
-    w[k].out = out, w[k].stride = stride;
+    w[k].out = r->host_fpos;
   fluid_scan_both(w);
   return (long)ncell;
 }
@@ -222,7 +229,7 @@ int render_pass_fluid(renderer_t *r, const render_scene_t *scene, int *ran, char
 
   if (render_ensure_buffer(r, &r->fluid_cells, &r->cap_fcells, 2 * (size_t)ncell, sizeof(int32_t),
                            CL_MEM_READ_ONLY, 1, err, errlen) ||
-      render_ensure_buffer(r, &r->fluid_pos, &r->cap_fpos, 3 * (size_t)fl.stride, sizeof(float),
+      render_ensure_buffer(r, &r->fluid_pos, &r->cap_fpos, 3 * (size_t)fl.entries, sizeof(float),
                            CL_MEM_READ_ONLY, 1, err, errlen))
     return PROTO_E_DEVICE;
   cl_kernel k = r->fluid;
@@ -231,7 +238,7 @@ int render_pass_fluid(renderer_t *r, const render_scene_t *scene, int *ran, char
                            2 * (size_t)ncell * sizeof(int32_t), r->host_fcells, 0, NULL, NULL);
   if (cr == CL_SUCCESS)
     cr = clEnqueueWriteBuffer(r->dev.queue, r->fluid_pos, CL_FALSE, 0,
-                              3 * (size_t)fl.stride * sizeof(float), r->host_fpos, 0, NULL, NULL);
+                              3 * (size_t)fl.entries * sizeof(float), r->host_fpos, 0, NULL, NULL);
   if (cr == CL_SUCCESS)
     cr = clSetKernelArg(k, 0, sizeof r->frame, &r->frame);
   if (cr == CL_SUCCESS)
