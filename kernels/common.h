@@ -125,15 +125,15 @@ typedef struct vfx_frame {
  * uniform grid of cubic cells of side 'cell' >= h from 'origin', dims[0] x dims[1] x dims[2]
  * cells, x fastest. Cell c lists every particle within h of its box (a particle is listed in
  * each cell it can reach), so the field anywhere in a cell needs only that cell's list. Lists
- * are structure-of-arrays: x at pos[i], y at pos[stride + i], z at pos[2 * stride + i]; a list
- * starts at a multiple of 8 and is padded to one with FLUID_PAD, whose field is zero. cells[2c]
- * is the start of cell c's list and cells[2c + 1] the number of real particles in it.
+ * follow one another in cell order, an entry i being the particle's x, y, z at pos[3i], pos[3i +
+ * 1], pos[3i + 2]. cells[2c] is the start (in entries) of cell c's list and cells[2c + 1] the
+ * number of particles in it.
  */
 typedef struct vfx_fluid {
   float origin[3];
   float cell, inv_cell;
   int dims[3];
-  int stride;  /* Floats per coordinate section of the position buffer. */
+  int entries; /* Entries in all the lists, three floats each. */
   float inv_h; /* 1 / h. */
   float h;
   float threshold;  /* T. */
@@ -144,11 +144,13 @@ typedef struct vfx_fluid {
   float shininess;  /* Blinn-Phong exponent from the roughness. */
   float box_min[3]; /* The grid's bounds. */
   float box_max[3];
+  int rows; /* Rows of the per-pixel buffers: packets below them are not traced. */
 } vfx_fluid_t;
 
-#define FLUID_PAD 1e18f /* Coordinate of padding entries: far from everything, finite squared. */
-#define FLUID_LX 8      /* Work-group of the fluid pass: one pixel per work-item. */
-#define FLUID_LY 8
+#define FLUID_PW 4 /* A fluid work-item traces a packet of FLUID_PW x FLUID_PH pixels, */
+#define FLUID_PH 4 /* one per lane of a float16. */
+#define FLUID_LX 2 /* Work-group of the fluid pass, in packets. */
+#define FLUID_LY 2
 
 #ifdef __OPENCL_VERSION__
 

@@ -80,7 +80,7 @@ struct renderer {
   size_t host_lists_cap;
   int32_t *host_fcells; /* Staging for the fluid grid's (start, count) pairs. */
   size_t host_fcells_cap;
-  float *host_fpos; /* Staging for the fluid grid's padded lists. */
+  float *host_fpos; /* Staging for the fluid grid's lists. */
   size_t host_fpos_cap;
   unsigned char *scratch; /* Tone-mapped bytes waiting for the PNG encoder. */
   size_t scratch_cap;
