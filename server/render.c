@@ -367,7 +367,8 @@ int renderer_create(const renderer_opts_t *opts, renderer_t **out, char *err, si
   r->waves_local[1] = r->objects_local[1];
   fit_local(r, r->waves, r->waves_local, 2);
   fit_local(r, r->waves_march, r->waves_local, 2);
-  /* One pixel per fluid work-item; the padded rows hold whole work-groups of it too. */
+  /* A packet of FLUID_PW x FLUID_PH pixels per fluid work-item; the launch rounds the packets up
+   * to whole work-groups and the kernel skips those past the buffers. */
   r->fluid_local[0] = FLUID_LX;
   r->fluid_local[1] = FLUID_LY;
   fit_local(r, r->fluid, r->fluid_local, 2);
