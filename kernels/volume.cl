@@ -164,10 +164,10 @@ static inline vf vol_shadow(__global const float *restrict smap, int pitch, cons
  * accumulators cross the loop; grid and shadow-map coordinates are rebuilt from the direction
  * at each sample, and whatever depends only on the eye stays scalar.
  */
-__kernel void volumes(vfx_frame_t f, vfx_shadow_t sh, __global const float *restrict vols,
-                      int nvol, __global const float4 *restrict data,
-                      __global const float *restrict smap, int smap_pitch,
-                      __global const float *restrict depth, __global float *restrict linear) {
+__kernel void volumes(vfx_frame_t f, vfx_shadow_t sh, __global const float *restrict vols, int nvol,
+                      __global const float4 *restrict data, __global const float *restrict smap,
+                      int smap_pitch, __global const float *restrict depth,
+                      __global float *restrict linear) {
   int x0 = VOL_PACKET * get_global_id(0), y = get_global_id(1);
   int o = y * f.pitch + x0;
 
