@@ -18,6 +18,9 @@
  * overlapping volumes are sampled one after the other, not merged.
  */
 #include <math.h>
+#include <pthread.h>
+#include <sched.h>
+#include <stdatomic.h>
 
 #include "render_internal.h"
 #include "../kernels/volume.h"
@@ -198,6 +201,85 @@ static void axis_taps(axis_tap_t *t, uint32_t n, double d, size_t stride) {
   }
 }
 
+/* Voxels from which the light sweep runs on two threads (64³ and up). */
+#define SWEEP_THREAD_MIN ((size_t)1 << 18)
+
+/* A barrier for two threads that spins, then yields: the sweep meets it once a slice, and a
+ * sleeping wait costs more than a slice of a small grid. */
+typedef struct pair_barrier {
+  atomic_uint count, phase;
+} pair_barrier_t;
+
+static void pair_wait(pair_barrier_t *b) {
+  unsigned ph = atomic_load_explicit(&b->phase, memory_order_acquire);
+  if (atomic_fetch_add_explicit(&b->count, 1, memory_order_acq_rel) == 1) {
+    atomic_store_explicit(&b->count, 0, memory_order_relaxed);
+    atomic_store_explicit(&b->phase, ph + 1, memory_order_release);
+    return;
+  }
+  for (unsigned spins = 0; atomic_load_explicit(&b->phase, memory_order_acquire) == ph; spins++)
+    if (spins >= 256)
+      sched_yield();
+}
+
+/* One light sweep (light_grid): the slices along axis a from the light's side, each voxel from
+ * the slice before it. */
+typedef struct sweep {
+  const uint32_t *n;
+  int a, b, c, dir;
+  size_t stride[3];
+  const axis_tap_t *tb, *tc;
+  const float *sg;
+  float *lg;
+  float half;          /* -1/2 the world length of a step between slices. */
+  pair_barrier_t *bar; /* Between the two threads' slices, or NULL with one thread. */
+} sweep_t;
+
+/* The rows [j0, j1) (axis b) of every slice of a sweep. */
+typedef struct sweep_part {
+  const sweep_t *w;
+  uint32_t j0, j1;
+} sweep_part_t;
+
+static void *sweep_rows(void *arg) {
+  const sweep_part_t *p = arg;
+  const sweep_t *w = p->w;
+  const uint32_t *n = w->n;
+  const size_t *stride = w->stride;
+  const float *sg = w->sg;
+  float *lg = w->lg;
+  int a = w->a, dir = w->dir;
+  int first = dir > 0 ? (int)n[a] - 1 : 0;
+  for (int s = first; s >= 0 && s < (int)n[a]; s -= dir) {
+    int up = s + dir, has_up = up >= 0 && up < (int)n[a];
+    size_t base = s * stride[a], ubase = up * stride[a];
+    for (uint32_t j = p->j0; j < p->j1; j++) {
+      const axis_tap_t *pj = &w->tb[j];
+      for (uint32_t k = 0; k < n[w->c]; k++) {
+        const axis_tap_t *pk = &w->tc[k];
+        size_t at = base + j * stride[w->b] + k * stride[w->c];
+        float here = sg[at], t_up = 1, s_up = 0;
+        if (has_up && pj->ok && pk->ok) {
+          size_t i00 = ubase + pj->i0 + pk->i0, i10 = ubase + pj->i1 + pk->i0;
+          size_t i01 = ubase + pj->i0 + pk->i1, i11 = ubase + pj->i1 + pk->i1;
+          float fb = pj->f, fc = pk->f;
+          t_up = (1 - fc) * ((1 - fb) * lg[i00] + fb * lg[i10]) +
+                 fc * ((1 - fb) * lg[i01] + fb * lg[i11]);
+          s_up = (1 - fc) * ((1 - fb) * sg[i00] + fb * sg[i10]) +
+                 fc * ((1 - fb) * sg[i01] + fb * sg[i11]);
+        }
+        /* Without a point up the light the ray leaves the box within about half a step. Empty
+         * space passes the light on unchanged, without the exponential. */
+        float tau = here + s_up;
+        lg[at] = tau > 0 ? t_up * expf(w->half * tau) : t_up;
+      }
+    }
+    if (w->bar)
+      pair_wait(w->bar);
+  }
+  return NULL;
+}
+
 static int light_grid(vol_entry_t *e, const float *dens, float sigma, const float l[3], float *sg,
                       float *lg) {
   uint32_t *n = e->dims;
@@ -226,7 +308,8 @@ static int light_grid(vol_entry_t *e, const float *dens, float sigma, const floa
   size_t stride[3] = {1, n[0], (size_t)n[0] * n[1]};
   /* Where the ray from a voxel of row j (axis b) or column k (axis c) meets the slice up the
    * light is the same in every slice: its two neighbours and weight per row and per column,
-   * or -1 where it falls beside the grid. */
+   * and whether it falls inside the grid. Two threads take half the rows of every slice each,
+   * meeting between slices (a slice reads the one before it). */
   axis_tap_t *tb = malloc(n[b] * sizeof *tb), *tc = malloc(n[c] * sizeof *tc);
   if (tb == NULL || tc == NULL) {
     free(tb);
@@ -235,34 +318,33 @@ static int light_grid(vol_entry_t *e, const float *dens, float sigma, const floa
   }
   axis_taps(tb, n[b], db, stride[b]);
   axis_taps(tc, n[c], dc, stride[c]);
-  float half = (float)(-0.5 * step);
-  int first = dir > 0 ? (int)n[a] - 1 : 0;
-  for (int s = first; s >= 0 && s < (int)n[a]; s -= dir) {
-    int up = s + dir, has_up = up >= 0 && up < (int)n[a];
-    size_t base = s * stride[a], ubase = up * stride[a];
-    for (uint32_t j = 0; j < n[b]; j++) {
-      const axis_tap_t *pj = &tb[j];
-      for (uint32_t k = 0; k < n[c]; k++) {
-        const axis_tap_t *pk = &tc[k];
-        size_t at = base + j * stride[b] + k * stride[c];
-        float here = sg[at], t_up = 1, s_up = here;
-        if (has_up && pj->ok && pk->ok) {
-          size_t i00 = ubase + pj->i0 + pk->i0, i10 = ubase + pj->i1 + pk->i0;
-          size_t i01 = ubase + pj->i0 + pk->i1, i11 = ubase + pj->i1 + pk->i1;
-          float fb = pj->f, fc = pk->f;
-          t_up = (1 - fc) * ((1 - fb) * lg[i00] + fb * lg[i10]) +
-                 fc * ((1 - fb) * lg[i01] + fb * lg[i11]);
-          s_up = (1 - fc) * ((1 - fb) * sg[i00] + fb * sg[i10]) +
-                 fc * ((1 - fb) * sg[i01] + fb * sg[i11]);
-        } else {
-          /* The ray leaves the box within about half a step. */
-          s_up = 0;
-        }
-        float tau = here + s_up;
-        /* Empty space passes the light on unchanged, without the exponential. */
-        lg[at] = tau > 0 ? t_up * expf(half * tau) : t_up;
-      }
+  sweep_t w = {.n = n,
+               .a = a,
+               .b = b,
+               .c = c,
+               .dir = dir,
+               .stride = {stride[0], stride[1], stride[2]},
+               .tb = tb,
+               .tc = tc,
+               .sg = sg,
+               .lg = lg,
+               .half = (float)(-0.5 * step)};
+  sweep_part_t part[2] = {{&w, 0, n[b]}, {&w, n[b] / 2, n[b]}};
+  pair_barrier_t bar = {0};
+  pthread_t th;
+  if (nl >= SWEEP_THREAD_MIN && n[b] >= 2) {
+    part[0].j1 = n[b] / 2;
+    w.bar = &bar;
+    if (pthread_create(&th, NULL, sweep_rows, &part[1]) == 0) {
+      sweep_rows(&part[0]);
+      pthread_join(th, NULL);
+    } else {
+      w.bar = NULL;
+      part[0].j1 = n[b];
+      sweep_rows(&part[0]);
     }
+  } else {
+    sweep_rows(&part[0]);
   }
   free(tb);
   free(tc);
