@@ -513,6 +513,70 @@ static void test_noise(void) {
   free(c);
 }
 
+/* ---- The light sweep of a grid large enough to run on two threads ------------------------- */
+
+/*
+ * A homogeneous box lit straight from above: the light grid then holds exactly
+ * exp(-sigma (top - y)) at every voxel centre (the trapezoid rule is exact for a constant),
+ * so the frame, with no ambient and an isotropic phase, is the sum over the kernel's own
+ * samples of tr * (1 - exp(-sigma dt)) * T(p), T interpolated linearly in y between those
+ * centre values. The grid has more voxels than SWEEP_THREAD_MIN (render_volume.c), so the sweep
+ * runs on two threads; a race between them would show as a wrong or a changing frame.
+ */
+static void test_light_sweep_threads(void) {
+  const uint32_t nx = 70, ny = 66, nz = 64;
+  density_grid_t *g = make_grid(nx, ny, nz);
+  for (size_t i = 0; i < (size_t)nx * ny * nz; i++)
+    g->data[i] = 1;
+  rvolume_t v = {.source = VOLUME_GRID,
+                 .min = {-1, -1, -1},
+                 .max = {1, 1.2f, 1},
+                 .density = 1.3f,
+                 .albedo = {1, 1, 1},
+                 .samples = 40,
+                 .grid = g};
+  render_scene_t s = bare_scene(oblique);
+  s.light.intensity = 1;
+  s.volumes = &v, s.nvolumes = 1;
+  const int w = 40, h = 32;
+  float *img = render_f32(&s, w, h, LAYER_ALL), *again = render_f32(&s, w, h, LAYER_ALL);
+  CHECK(img && again, "render failed");
+  if (img && again)
+    CHECK(memcmp(img, again, sizeof(float) * 4 * w * h) == 0, "the same frame renders twice alike");
+  double lo[3], hi[3], worst = 0, peak = 0;
+  for (int k = 0; k < 3; k++)
+    lo[k] = v.min[k], hi[k] = v.max[k];
+  double cell = (hi[1] - lo[1]) / ny, sigma = v.density;
+  for (int y = 0; img && y < h; y++)
+    for (int x = 0; x < w; x++) {
+      ray_t ray = pixel_ray(&s.camera, w, h, x, y);
+      double t0, t1, want = 0, tr = 1;
+      if (slab(&ray, lo, hi, &t0, &t1)) {
+        int n = v.samples;
+        double dt = (t1 - t0) / n, a = 1 - exp(-sigma * dt);
+        for (int i = 0; i < n; i++) {
+          double py = ray.o[1] + (t0 + (i + 0.5) * dt) * ray.d[1];
+          double c = fmin(fmax((py - lo[1]) / cell - 0.5, 0), ny - 1.0);
+          int j0 = (int)c, j1 = j0 + 1 < (int)ny ? j0 + 1 : j0;
+          double f = c - j0;
+          double l0 = exp(-sigma * (hi[1] - (lo[1] + (j0 + 0.5) * cell)));
+          double l1 = exp(-sigma * (hi[1] - (lo[1] + (j1 + 0.5) * cell)));
+          want += tr * a * (l0 + f * (l1 - l0));
+          tr *= 1 - a;
+        }
+      }
+      double got = img[4 * (y * w + x)];
+      peak = fmax(peak, want);
+      worst = fmax(worst, fabs(got - want));
+      CHECK(fabs(got - want) < 2e-4, "pixel (%d, %d): %.6f, reference %.6f", x, y, got, want);
+    }
+  CHECK(peak > 0.3, "the volume hardly shows (%.3f)", peak);
+  printf("light sweep on two threads: worst error %.2g (brightest %.3f)\n", worst, peak);
+  free(img);
+  free(again);
+  free_grid(g);
+}
+
 int main(void) {
   char err[8192];
   if (renderer_create(NULL, &R, err, sizeof err) != 0) {
@@ -523,6 +587,7 @@ int main(void) {
   test_no_stripes();
   test_shadow();
   test_grid_reference();
+  test_light_sweep_threads();
   test_noise();
   renderer_destroy(R);
   printf("%d checks, %d failed\n", checks, failures);
