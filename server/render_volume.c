@@ -351,38 +351,6 @@ static int light_grid(vol_entry_t *e, const float *dens, float sigma, const floa
   return 0;
 }
 
-/* The part of the box where the interpolated density can be non-zero; 1 when there is none. */
-static int tight_box(vol_entry_t *e, const float *dens) {
-  int lo[3] = {INT32_MAX, INT32_MAX, INT32_MAX}, hi[3] = {-1, -1, -1};
-  const float *p = dens;
-  for (uint32_t z = 0; z < e->dims[2]; z++)
-    for (uint32_t y = 0; y < e->dims[1]; y++) {
-      int xl = -1, xh = -1;
-      for (uint32_t x = 0; x < e->dims[0]; x++, p++)
-        if (*p > 0) {
-          if (xl < 0)
-            xl = (int)x;
-          xh = (int)x;
-        }
-      if (xl < 0)
-        continue;
-      int at[3] = {xl, (int)y, (int)z}, ah[3] = {xh, (int)y, (int)z};
-      for (int k = 0; k < 3; k++) {
-        lo[k] = at[k] < lo[k] ? at[k] : lo[k];
-        hi[k] = ah[k] > hi[k] ? ah[k] : hi[k];
-      }
-    }
-  if (hi[0] < 0)
-    return 1;
-  for (int k = 0; k < 3; k++) {
-    double cell = ((double)e->max[k] - e->min[k]) / e->dims[k];
-    double a = e->min[k] + (lo[k] - 0.5) * cell, b = e->min[k] + (hi[k] + 1.5) * cell;
-    e->tmin[k] = (float)(a < e->min[k] ? e->min[k] : a);
-    e->tmax[k] = (float)(b > e->max[k] ? e->max[k] : b);
-  }
-  return 0;
-}
-
 /*
  * Makes room for 'n' floats in '*buf' of capacity '*cap', keeping an allocation that is large
  * enough: a cloud rebuilds its grids every step, and fresh allocations of this size come from
@@ -398,19 +366,80 @@ static int reserve(float **buf, size_t *cap, size_t n) {
   return *buf ? 0 : -1;
 }
 
-/* Interleaves density 'dens' and light 'lg' into e->packed as the kernel reads them
- * (volume.h). */
-static int pack(vol_entry_t *e, const float *dens, const float *lg) {
-  size_t n = (size_t)e->dims[0] * e->dims[1] * e->dims[2];
-  if (reserve(&e->packed, &e->packed_cap, 4 * n) != 0)
-    return -1;
-  float *q = e->packed;
-  uint32_t nx = e->dims[0];
-  for (size_t row = 0; row < n; row += nx)
+/* Rows (of dims[0] voxels) of a grid from which pack runs on two threads (64³ and up). */
+#define PACK_THREAD_MIN ((size_t)1 << 12)
+
+/* The rows [row0, row1) of pack's work, and the voxel bounds of their non-zero density. */
+typedef struct pack_part {
+  vol_entry_t *e;
+  const float *dens, *lg;
+  size_t row0, row1;
+  int lo[3], hi[3];
+} pack_part_t;
+
+static void *pack_rows(void *arg) {
+  pack_part_t *p = arg;
+  uint32_t nx = p->e->dims[0], ny = p->e->dims[1];
+  const float *dens = p->dens, *lg = p->lg;
+  for (int k = 0; k < 3; k++)
+    p->lo[k] = INT32_MAX, p->hi[k] = -1;
+  for (size_t r = p->row0; r < p->row1; r++) {
+    size_t row = r * nx;
+    float *q = p->e->packed + 4 * row;
+    int xl = -1, xh = -1;
     for (uint32_t x = 0; x < nx; x++, q += 4) {
       size_t i = row + x, j = x + 1 < nx ? i + 1 : i;
       q[0] = dens[i], q[1] = dens[j], q[2] = lg[i], q[3] = lg[j];
+      if (dens[i] > 0) {
+        xl = xl < 0 ? (int)x : xl;
+        xh = (int)x;
+      }
     }
+    if (xl < 0)
+      continue;
+    int at[3] = {xl, (int)(r % ny), (int)(r / ny)}, ah[3] = {xh, at[1], at[2]};
+    for (int k = 0; k < 3; k++) {
+      p->lo[k] = at[k] < p->lo[k] ? at[k] : p->lo[k];
+      p->hi[k] = ah[k] > p->hi[k] ? ah[k] : p->hi[k];
+    }
+  }
+  return NULL;
+}
+
+/*
+ * Interleaves density 'dens' and light 'lg' into e->packed as the kernel reads them (volume.h)
+ * and sets the tight box, the part of the box where the interpolated density can be non-zero,
+ * and e->empty when there is none. Returns 0, or -1 when out of memory.
+ */
+static int pack(vol_entry_t *e, const float *dens, const float *lg) {
+  size_t n = (size_t)e->dims[0] * e->dims[1] * e->dims[2], rows = n / e->dims[0];
+  if (reserve(&e->packed, &e->packed_cap, 4 * n) != 0)
+    return -1;
+  pack_part_t part[2] = {{e, dens, lg, 0, rows, {0}, {0}}, {e, dens, lg, rows / 2, rows, {0}, {0}}};
+  pthread_t th;
+  int two = rows >= PACK_THREAD_MIN;
+  if (two) {
+    part[0].row1 = rows / 2;
+    two = pthread_create(&th, NULL, pack_rows, &part[1]) == 0;
+    if (!two)
+      part[0].row1 = rows;
+  }
+  pack_rows(&part[0]);
+  if (two) {
+    pthread_join(th, NULL);
+    for (int k = 0; k < 3; k++) {
+      part[0].lo[k] = part[1].lo[k] < part[0].lo[k] ? part[1].lo[k] : part[0].lo[k];
+      part[0].hi[k] = part[1].hi[k] > part[0].hi[k] ? part[1].hi[k] : part[0].hi[k];
+    }
+  }
+  const int *lo = part[0].lo, *hi = part[0].hi;
+  e->empty = hi[0] < 0;
+  for (int k = 0; k < 3 && !e->empty; k++) {
+    double cell = ((double)e->max[k] - e->min[k]) / e->dims[k];
+    double a = e->min[k] + (lo[k] - 0.5) * cell, b = e->min[k] + (hi[k] + 1.5) * cell;
+    e->tmin[k] = (float)(a < e->min[k] ? e->min[k] : a);
+    e->tmax[k] = (float)(b > e->max[k] ? e->max[k] : b);
+  }
   return 0;
 }
 
@@ -462,21 +491,25 @@ static int entry_build(vol_entry_t *e, const rvolume_t *v, float sigma, const fl
       return -1;
     dens = e->baked;
   }
-  e->empty = tight_box(e, dens);
-  if (!e->empty) {
-    size_t n = (size_t)e->dims[0] * e->dims[1] * e->dims[2];
-    if (reserve(&e->scratch, &e->scratch_cap, 2 * n) != 0 ||
-        light_grid(e, dens, sigma, l, e->scratch, e->scratch + n) != 0 ||
-        pack(e, dens, e->scratch + n) != 0)
-      return -1;
-    /* The scratch of a grid that changes every step is kept; that of a large one is not. */
-    if (n > VOL_KEEP_SCRATCH) {
-      free(e->scratch);
-      e->scratch = NULL, e->scratch_cap = 0;
-    }
-    free(e->baked);
-    e->baked = NULL;
+  size_t n = (size_t)e->dims[0] * e->dims[1] * e->dims[2], first = 0;
+  while (first < n && !(dens[first] > 0))
+    first++;
+  e->empty = first == n;
+  if (e->empty) { /* Nothing to draw, and nothing to allocate for it. */
+    e->valid = 1;
+    return 0;
   }
+  if (reserve(&e->scratch, &e->scratch_cap, 2 * n) != 0 ||
+      light_grid(e, dens, sigma, l, e->scratch, e->scratch + n) != 0 ||
+      pack(e, dens, e->scratch + n) != 0)
+    return -1;
+  /* The scratch of a grid that changes every step is kept; that of a large one is not. */
+  if (n > VOL_KEEP_SCRATCH) {
+    free(e->scratch);
+    e->scratch = NULL, e->scratch_cap = 0;
+  }
+  free(e->baked);
+  e->baked = NULL;
   e->valid = 1;
   return 0;
 }
