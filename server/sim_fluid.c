@@ -557,7 +557,11 @@ static void sort_by_cell(fluid_sim_t *s) {
 static int substep(fluid_sim_t *s, float dt, char *err, size_t errlen) {
   sort_by_cell(s);
   cl_command_queue q = s->dev->queue;
-  size_t bytes = 6 * s->stride * sizeof(float);
+  /* The whole buffer, the zeros past the last component included: the kernels' masked lanes
+   * read up to 7 floats beyond a run's end, and where the particles fill the stride exactly a
+   * velocity run ends at the buffer's last component, so never-written device memory there
+   * could hold a NaN that a zero weight does not cancel. */
+  size_t bytes = (6 * s->stride + 8) * sizeof(float);
   cl_int rc = CL_SUCCESS;
   float key[3] = {s->p.h, s->p.particle_mass, s->p.rest_density};
   if (memcmp(key, s->wall_key, sizeof key) != 0) {
