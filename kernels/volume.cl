@@ -98,10 +98,22 @@ static inline void vol_trilinear(__global const float4 *restrict g, int nx, int 
   vf fx = x - convert_vf(ix), fy = y - convert_vf(iy), fz = z - convert_vf(iz);
   vi b = ix + nx * (iy + ny * iz);
   vf d00, d10, d01, d11, l00, l10, l01, l11;
-  vol_pair(g, b, fx, &d00, &l00);
-  vol_pair(g, b + sy, fx, &d10, &l10);
-  vol_pair(g, b + sz, fx, &d01, &l01);
-  vol_pair(g, b + sz + sy, fx, &d11, &l11);
+  int b0 = b.s0;
+  if (all(b == b0)) {
+    /* Every lane in the same voxel (neighbouring pixels in a coarse grid): its four x-pairs
+     * are loaded once for the packet instead of gathered per lane. */
+    int y1 = sy.s0, z1 = sz.s0;
+    float4 q00 = g[b0], q10 = g[b0 + y1], q01 = g[b0 + z1], q11 = g[b0 + y1 + z1];
+    d00 = mix((vf)q00.x, (vf)q00.y, fx), l00 = mix((vf)q00.z, (vf)q00.w, fx);
+    d10 = mix((vf)q10.x, (vf)q10.y, fx), l10 = mix((vf)q10.z, (vf)q10.w, fx);
+    d01 = mix((vf)q01.x, (vf)q01.y, fx), l01 = mix((vf)q01.z, (vf)q01.w, fx);
+    d11 = mix((vf)q11.x, (vf)q11.y, fx), l11 = mix((vf)q11.z, (vf)q11.w, fx);
+  } else {
+    vol_pair(g, b, fx, &d00, &l00);
+    vol_pair(g, b + sy, fx, &d10, &l10);
+    vol_pair(g, b + sz, fx, &d01, &l01);
+    vol_pair(g, b + sz + sy, fx, &d11, &l11);
+  }
   *d = mix(mix(d00, d10, fy), mix(d01, d11, fy), fz);
   *l = mix(mix(l00, l10, fy), mix(l01, l11, fy), fz);
 }
