@@ -372,8 +372,6 @@ int renderer_create(const renderer_opts_t *opts, renderer_t **out, char *err, si
   r->fluid_local[0] = FLUID_LX;
   r->fluid_local[1] = FLUID_LY;
   fit_local(r, r->fluid, r->fluid_local, 2);
-  while (r->fluid_local[1] > r->objects_local[1])
-    r->fluid_local[1] /= 2;
   /* Every local size is a power of two and the padded rows are a multiple of the widest
    * work-group (row_pixels); the rows are a multiple of the objects work-group's, so the tone
    * map's must not be taller. */

@@ -174,14 +174,6 @@ static int bake_noise(const rvolume_t *v, vol_entry_t *e) {
 
 /* ---- Light grid ---------------------------------------------------------------------------- */
 
-/*
- * Fills 'lg' with the transmittance from each voxel centre towards the light
- * (direction 'l', unit) through the volume, for extinction sigma * density. One sweep: along
- * the axis on which the light moves fastest in voxels, slice by slice from the light's side,
- * a voxel's transmittance is that of the point one slice up the light ray (bilinear in the
- * slice before) times exp(-optical depth of the step between them), the density integrated by
- * the trapezoid rule. A point that falls beside the grid sees the light unobstructed.
- */
 /* One axis of the step up the light: the two voxels (as offsets) either side of the point
  * i + d and the weight of the second, or ok = 0 where the point lies beside the grid. */
 typedef struct axis_tap {
@@ -280,6 +272,14 @@ static void *sweep_rows(void *arg) {
   return NULL;
 }
 
+/*
+ * Fills 'lg' with the transmittance from each voxel centre towards the light
+ * (direction 'l', unit) through the volume, for extinction sigma * density. One sweep: along
+ * the axis on which the light moves fastest in voxels, slice by slice from the light's side,
+ * a voxel's transmittance is that of the point one slice up the light ray (bilinear in the
+ * slice before) times exp(-optical depth of the step between them), the density integrated by
+ * the trapezoid rule. A point that falls beside the grid sees the light unobstructed.
+ */
 static int light_grid(vol_entry_t *e, const float *dens, float sigma, const float l[3], float *sg,
                       float *lg) {
   uint32_t *n = e->dims;

@@ -239,6 +239,16 @@ void fluid_sim_destroy(fluid_sim_t *s) {
   free(s);
 }
 
+/*
+ * Floats of the state on host and device: six components of 'stride' each, then 8 zeros. The
+ * kernels' masked lanes read up to 7 floats past a run's end; where the particles fill the
+ * stride exactly, a velocity run ends at the last component, so the zeros must be uploaded too
+ * (never-written device memory could hold a NaN that a zero weight does not cancel).
+ */
+static size_t state_floats(const fluid_sim_t *s) {
+  return 6 * s->stride + 8;
+}
+
 fluid_sim_t *fluid_sim_create(cl_dev_t *dev, const fluid_params_t *p, char *err, size_t errlen) {
   if (dev == NULL || dev->program == NULL)
     return set_err(err, errlen, "[fluid] no built OpenCL program"), NULL;
@@ -254,7 +264,7 @@ fluid_sim_t *fluid_sim_create(cl_dev_t *dev, const fluid_params_t *p, char *err,
   s->stride = ((size_t)s->cap + LOCAL - 1) / LOCAL * LOCAL;
   grid_init(s);
   /* The kernels read eight particles at a time past a run's end: 8 floats of slack. */
-  size_t nstate = 6 * s->stride + 8;
+  size_t nstate = state_floats(s);
   s->state = calloc(nstate, sizeof(float));
   s->scratch = calloc(nstate, sizeof(float));
   s->ids = calloc(s->cap, sizeof(uint32_t));
@@ -557,11 +567,8 @@ static void sort_by_cell(fluid_sim_t *s) {
 static int substep(fluid_sim_t *s, float dt, char *err, size_t errlen) {
   sort_by_cell(s);
   cl_command_queue q = s->dev->queue;
-  /* The whole buffer, the zeros past the last component included: the kernels' masked lanes
-   * read up to 7 floats beyond a run's end, and where the particles fill the stride exactly a
-   * velocity run ends at the buffer's last component, so never-written device memory there
-   * could hold a NaN that a zero weight does not cancel. */
-  size_t bytes = (6 * s->stride + 8) * sizeof(float);
+  /* The whole buffer, the zero tail included (state_floats). */
+  size_t bytes = state_floats(s) * sizeof(float);
   cl_int rc = CL_SUCCESS;
   float key[3] = {s->p.h, s->p.particle_mass, s->p.rest_density};
   if (memcmp(key, s->wall_key, sizeof key) != 0) {
