@@ -47,16 +47,12 @@ typedef int16 vi;
   ((vf)(p[(i).s0], p[(i).s1], p[(i).s2], p[(i).s3], p[(i).s4], p[(i).s5], p[(i).s6], p[(i).s7],    \
         p[(i).s8], p[(i).s9], p[(i).sa], p[(i).sb], p[(i).sc], p[(i).sd], p[(i).se], p[(i).sf]))
 
-/* The x-pairs (volume.h) of one voxel per lane, blended along x by 'fx': density into *d and
- * light into *l, each a bilinear step short of the trilinear result. Inlined by force: as a call
- * (LLVM's choice at four call sites) its results go through memory and every live vector
- * register is spilled around it, 9% of a cloud frame's CPU time. */
-static inline __attribute__((always_inline)) void vol_pair(__global const float4 *restrict g, vi b,
-                                                           vf fx, vf *d, vf *l) {
-  __global const float *f = (__global const float *)g;
-  vi q = b * 4;
-  *d = mix(VOL_GATHER(f, q), VOL_GATHER(f, q + 1), fx);
-  *l = mix(VOL_GATHER(f, q + 2), VOL_GATHER(f, q + 3), fx);
+/* The smallest of the sixteen lanes of 'v'. */
+static inline int vol_min_lane(vi v) {
+  int8 a = min(v.lo, v.hi);
+  int4 b = min(a.lo, a.hi);
+  int2 c = min(b.lo, b.hi);
+  return min(c.x, c.y);
 }
 
 /*
@@ -92,28 +88,36 @@ static inline void vol_trilinear(__global const float4 *restrict g, int nx, int 
   x = fmin(fmax(x, 0.0f), (float)(nx - 1));
   y = fmin(fmax(y, 0.0f), (float)(ny - 1));
   z = fmin(fmax(z, 0.0f), (float)(nz - 1));
-  vi ix = convert_vi(x), iy = convert_vi(y), iz = convert_vi(z);
-  vi sy = select((vi)nx, (vi)0, iy >= ny - 1);
-  vi sz = select((vi)(nx * ny), (vi)0, iz >= nz - 1);
+  /* The lower corner of the voxel pair along y (and z) holding the point: at the last centre
+   * the pair below it, with weight 1 on the upper; a grid one voxel thick pairs it with itself. */
+  int y1 = ny > 1 ? nx : 0, z1 = nz > 1 ? nx * ny : 0;
+  vi ix = convert_vi(x), iy = min(convert_vi(y), max(ny - 2, 0)),
+     iz = min(convert_vi(z), max(nz - 2, 0));
   vf fx = x - convert_vf(ix), fy = y - convert_vf(iy), fz = z - convert_vf(iz);
   vi b = ix + nx * (iy + ny * iz);
-  vf d00, d10, d01, d11, l00, l10, l01, l11;
-  int b0 = b.s0;
-  if (all(b == b0)) {
-    /* Every lane in the same voxel (neighbouring pixels in a coarse grid): its four x-pairs
-     * are loaded once for the packet instead of gathered per lane. */
-    int y1 = sy.s0, z1 = sz.s0;
-    float4 q00 = g[b0], q10 = g[b0 + y1], q01 = g[b0 + z1], q11 = g[b0 + y1 + z1];
-    d00 = mix((vf)q00.x, (vf)q00.y, fx), l00 = mix((vf)q00.z, (vf)q00.w, fx);
-    d10 = mix((vf)q10.x, (vf)q10.y, fx), l10 = mix((vf)q10.z, (vf)q10.w, fx);
-    d01 = mix((vf)q01.x, (vf)q01.y, fx), l01 = mix((vf)q01.z, (vf)q01.w, fx);
-    d11 = mix((vf)q11.x, (vf)q11.y, fx), l11 = mix((vf)q11.z, (vf)q11.w, fx);
-  } else {
-    vol_pair(g, b, fx, &d00, &l00);
-    vol_pair(g, b + sy, fx, &d10, &l10);
-    vol_pair(g, b + sz, fx, &d01, &l01);
-    vol_pair(g, b + sz + sy, fx, &d11, &l11);
-  }
+  /*
+   * The packet's rays are neighbouring pixels, so their lanes fall in one voxel or a few: each
+   * of those voxels' four x-pairs are loaded once and blended into the lanes inside it, instead
+   * of sixteen per-lane gathers (a vgatherdps apiece) for every lookup. The loop takes the
+   * smallest voxel index of the lanes left until none is.
+   */
+  vi left = (vi)-1;
+  vf d00 = 0.0f, d10 = 0.0f, d01 = 0.0f, d11 = 0.0f;
+  vf l00 = 0.0f, l10 = 0.0f, l01 = 0.0f, l11 = 0.0f;
+  do {
+    int v0 = vol_min_lane(select((vi)INT_MAX, b, left));
+    vi in = b == v0;
+    left &= ~in;
+    float4 q00 = g[v0], q10 = g[v0 + y1], q01 = g[v0 + z1], q11 = g[v0 + y1 + z1];
+    d00 = select(d00, mix((vf)q00.x, (vf)q00.y, fx), in);
+    l00 = select(l00, mix((vf)q00.z, (vf)q00.w, fx), in);
+    d10 = select(d10, mix((vf)q10.x, (vf)q10.y, fx), in);
+    l10 = select(l10, mix((vf)q10.z, (vf)q10.w, fx), in);
+    d01 = select(d01, mix((vf)q01.x, (vf)q01.y, fx), in);
+    l01 = select(l01, mix((vf)q01.z, (vf)q01.w, fx), in);
+    d11 = select(d11, mix((vf)q11.x, (vf)q11.y, fx), in);
+    l11 = select(l11, mix((vf)q11.z, (vf)q11.w, fx), in);
+  } while (any(left));
   *d = mix(mix(d00, d10, fy), mix(d01, d11, fy), fz);
   *l = mix(mix(l00, l10, fy), mix(l01, l11, fy), fz);
 }
