@@ -9,6 +9,7 @@
 #include <stdlib.h>
 #include <string.h>
 
+#include "defer.h"
 #include "dispatch.h"
 #include "log.h"
 
@@ -65,6 +66,7 @@ static void call_finish(call_t *call, cJSON *response, unsigned char *att, size_
   call->reply->pending--;
   cJSON_Delete(call->id);
   cJSON_Delete(call->params);
+  defer_release(call);
   free(call);
   if (!c->closing)
     conn_flush_replies(c);
@@ -178,6 +180,22 @@ static void dispatch_one(conn_t *c, reply_t *r, int i, const cJSON *msg) {
   m->handler(call);
 }
 
+void dispatch_resume(conn_t *c) {
+  if (!c->batch)
+    return;
+  while (c->batch_next && !c->held) {
+    const cJSON *it = c->batch_next;
+    c->batch_next = it->next;
+    dispatch_one(c, c->batch_reply, c->batch_part++, it);
+  }
+  if (c->batch_next)
+    return; /* Held part-way: the rest waits for conn_release. */
+  cJSON_Delete(c->batch);
+  c->batch = NULL;
+  if (!c->closing)
+    conn_flush_replies(c);
+}
+
 void dispatch_line(conn_t *c, char *line, size_t len) {
   char why[160];
   cJSON *msg = proto_parse(line, len, why, sizeof why);
@@ -206,11 +224,12 @@ void dispatch_line(conn_t *c, char *line, size_t len) {
       c->srv->stats.requests++;
       part_error(c, r, 0, NULL, PROTO_E_INVALID_REQUEST, "invalid request: empty batch", NULL);
     } else {
-      int i = 0;
-      const cJSON *it;
-      cJSON_ArrayForEach(it, msg) {
-        dispatch_one(c, r, i++, it);
-      }
+      c->batch = msg;
+      c->batch_next = msg->child;
+      c->batch_reply = r;
+      c->batch_part = 0;
+      dispatch_resume(c);
+      return;
     }
   } else {
     reply_t *r = reply_append(c, 1, 0);

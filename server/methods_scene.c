@@ -6,8 +6,9 @@
 #include <math.h>
 #include <string.h>
 
-#include "dispatch.h"
 #include "cloud.h"
+#include "defer.h"
+#include "dispatch.h"
 #include "fluid.h"
 #include "frames.h"
 
@@ -58,7 +59,12 @@ static void scene_create_m(call_t *call) {
     return;
   }
   scene_error_t err = {0};
-  if (!server_add_scene(call->srv, name, preset, &err)) {
+  scene_file_t want;
+  defer_arm(call, &want);
+  scene_entry_t *e = server_add_scene(call->srv, name, preset, &err);
+  if (defer_check(call, e ? 0 : -1, &err, &want))
+    return;
+  if (!e) {
     answer_scene_error(call, &err, "preset");
     return;
   }
@@ -104,6 +110,7 @@ static void scene_set_m(call_t *call) {
   const cJSON *path = cJSON_GetObjectItem(call->params, "path");
   const cJSON *value = cJSON_GetObjectItem(call->params, "value");
   scene_error_t err = {0};
+  scene_file_t want;
   int rc;
   if (patch && !path && !value) {
     if (!cJSON_IsObject(patch)) {
@@ -111,14 +118,18 @@ static void scene_set_m(call_t *call) {
                  "invalid params: patch must be a JSON object (RFC 7386 merge patch)");
       return;
     }
+    defer_arm(call, &want);
     rc = scene_patch(e->scene, patch, &err);
   } else if (path && value && !patch) {
+    defer_arm(call, &want);
     rc = scene_set_path(e->scene, path->valuestring, value, &err);
   } else {
     call_error(call, PROTO_E_INVALID_PARAMS, patch ? "patch" : "path",
                "invalid params: give either 'patch', or both 'path' and 'value'");
     return;
   }
+  if (defer_check(call, rc, &err, &want))
+    return;
   if (rc != 0) {
     answer_scene_error(call, &err, NULL);
     return;

@@ -34,6 +34,7 @@ void conn_unref(conn_t *c) {
   if (--c->refs > 0)
     return;
   proto_reader_free(&c->reader);
+  cJSON_Delete(c->batch);
   while (c->head) {
     reply_t *r = c->head;
     c->head = r->next;
@@ -227,6 +228,36 @@ static void finish_with_error(conn_t *c, int code, const char *msg, const char *
   conn_flush_replies(c);
 }
 
+/* Dispatches the complete lines the reader holds, in order, until none is left or a call
+ * holds the connection: then reading stops, so a client pipelining behind a held request is
+ * slowed by TCP rather than buffered here without bound. */
+static void pump(conn_t *c) {
+  /* Calls may close the connection; hold a reference while lines are dispatched. */
+  c->refs++;
+  while (!c->held) {
+    char *line;
+    size_t len;
+    int rc = proto_reader_line(&c->reader, &line, &len);
+    if (rc == PROTO_READ_MORE)
+      break;
+    if (rc == PROTO_READ_OVERSIZE) {
+      char msg[128];
+      snprintf(msg, sizeof msg, "limit exceeded: line longer than %zu bytes",
+               c->srv->cfg.limits.line_bytes);
+      finish_with_error(c, PROTO_E_LIMIT, msg, "line_bytes");
+      break;
+    }
+    if (len == 0)
+      continue; /* Blank lines are keep-alives. */
+    dispatch_line(c, line, len);
+    if (c->closing || c->draining)
+      break;
+  }
+  if (c->held && !c->closing)
+    uv_read_stop(c->stream);
+  conn_unref(c);
+}
+
 static void on_read(uv_stream_t *stream, ssize_t nread, const uv_buf_t *buf) {
   conn_t *c = stream->data;
   if (nread == UV_EOF && !c->closing) {
@@ -250,26 +281,22 @@ static void on_read(uv_stream_t *stream, ssize_t nread, const uv_buf_t *buf) {
     conn_close(c);
     return;
   }
-  /* Calls may close the connection; hold a reference while lines are dispatched. */
+  pump(c);
+}
+
+void conn_hold(conn_t *c) {
+  c->held++;
+}
+
+void conn_release(conn_t *c) {
+  if (--c->held > 0 || c->closing)
+    return;
   c->refs++;
-  for (;;) {
-    char *line;
-    size_t len;
-    int rc = proto_reader_line(&c->reader, &line, &len);
-    if (rc == PROTO_READ_MORE)
-      break;
-    if (rc == PROTO_READ_OVERSIZE) {
-      char msg[128];
-      snprintf(msg, sizeof msg, "limit exceeded: line longer than %zu bytes",
-               c->srv->cfg.limits.line_bytes);
-      finish_with_error(c, PROTO_E_LIMIT, msg, "line_bytes");
-      break;
-    }
-    if (len == 0)
-      continue; /* Blank lines are keep-alives. */
-    dispatch_line(c, line, len);
-    if (c->closing || c->draining)
-      break;
+  dispatch_resume(c);
+  if (!c->held && !c->closing && !c->draining) {
+    pump(c);
+    if (!c->held && !c->closing && !c->draining)
+      uv_read_start(c->stream, on_alloc, on_read);
   }
   conn_unref(c);
 }

@@ -4,24 +4,22 @@
  * document, which is validated against scene_schema, checked across fields and compiled into
  * a new render_scene_t; only when all of that succeeds do the copy and the snapshot replace
  * the scene's, so a failed change leaves the document, the version and the snapshot exactly as
- * they were. Mesh files are resolved under the data directory and kept in a small cache keyed
- * by resolved path, inode, size and mtime, so patches that keep a mesh do not reload it.
+ * they were. The mesh and volume files a document names come from scene_files.c, which caches
+ * them, so patches that keep a file do not read it again.
  * Waves carry animations (anim.c): the clock moves them, writing the current values into the
  * document and compiling a new snapshot once per advance, however many steps it takes.
  */
-#include "datapath.h"
 #include "scene.h"
 
 #include <limits.h>
 #include <math.h>
-#include <pthread.h>
 #include <stdarg.h>
 #include <stdio.h>
 #include <stdlib.h>
 #include <string.h>
-#include <sys/stat.h>
 
 #include "anim.h"
+#include "scene_files.h"
 #include "proto.h"
 
 /* Shortest distance between eye and target, relative to their magnitude: below this the
@@ -31,24 +29,6 @@
 #define UP_PARALLEL_EPS 1e-3
 /* Most cell-steps cloud.init.steps may take (grid cells x steps): 64^3 x 128, about 0.1 s. */
 #define CLOUD_INIT_STEP_CELLS (1 << 25)
-
-static char *g_data_dir; /* Owned copy of the directory mesh files live under, or NULL. */
-
-/* One loaded mesh. The cache holds one reference; snapshots hold their own. */
-typedef struct mesh_entry {
-  char *path; /* Resolved (real) path. */
-  dev_t dev;
-  ino_t ino;
-  off_t size;
-  struct timespec mtime;
-  mesh_t *mesh;
-  struct mesh_entry *next;
-} mesh_entry_t;
-
-/* Scenes live on the loop thread, but the cache is global state and a lock costs nothing
- * next to loading a file, so it is guarded anyway. */
-static pthread_mutex_t g_cache_lock = PTHREAD_MUTEX_INITIALIZER;
-static mesh_entry_t *g_cache;
 
 static int set_err(scene_error_t *err, int code, const char *path, const char *fmt, ...) {
   if (!err)
@@ -70,11 +50,6 @@ static void clear_err(scene_error_t *err) {
   }
 }
 
-void scene_set_data_dir(const char *dir) {
-  free(g_data_dir);
-  g_data_dir = dir ? strdup(dir) : NULL;
-}
-
 /* Member 'name' of 'obj', case-sensitively; the validated document always has it. */
 static cJSON *get(const cJSON *obj, const char *name) {
   return cJSON_GetObjectItemCaseSensitive(obj, name);
@@ -94,262 +69,12 @@ static void vec3f(const cJSON *a, float out[3]) {
     out[i] = (float)d[i];
 }
 
-/* ---- Mesh files ---- */
-
-/*
- * Resolves mesh file 'file' of the object at 'path' ("objects.3.file") to a real path under
- * the data directory, in 'out' (PATH_MAX bytes), with its stat in 'st'.
- */
-static int resolve_mesh(const char *file, const char *path, char *out, struct stat *st,
-                        scene_error_t *err) {
-  char why[256];
-  if (datapath_resolve(g_data_dir, file, 1, out, PATH_MAX, why, sizeof why, NULL) != 0)
-    return set_err(err, PROTO_E_INVALID_PARAMS, path, "%s: %s", path, why);
-  if (stat(out, st) != 0 || !S_ISREG(st->st_mode))
-    return set_err(err, PROTO_E_INVALID_PARAMS, path, "%s: \"%.64s\" is not a regular file", path,
-                   file);
-  return 0;
-}
-
-static void entry_free(mesh_entry_t *e) {
-  mesh_unref(e->mesh);
-  free(e->path);
-  free(e);
-}
-
-/* Drops cache entries that no snapshot uses any more. A mesh whose only reference is the
- * cache's cannot gain another except through the cache, and the lock is held, so reading the
- * count is enough. */
-static void cache_prune(void) {
-  pthread_mutex_lock(&g_cache_lock);
-  for (mesh_entry_t **pp = &g_cache; *pp;) {
-    mesh_entry_t *e = *pp;
-    if (atomic_load(&e->mesh->refs) <= 1) {
-      *pp = e->next;
-      entry_free(e);
-    } else {
-      pp = &e->next;
-    }
-  }
-  pthread_mutex_unlock(&g_cache_lock);
-}
-
-/* Replaces the absolute 'real' path in a loader message by the client's 'file', so errors do
- * not reveal where the data directory lives. */
-static void scrub_message(char *msg, size_t len, const char *real, const char *file) {
-  char *at = strstr(msg, real);
-  if (!at)
-    return;
-  char tail[256];
-  snprintf(tail, sizeof tail, "%s", at + strlen(real));
-  snprintf(at, len - (size_t)(at - msg), "%s%s", file, tail);
-}
-
-/* A counted reference to the mesh of 'file' for the object at 'path', loaded or cached. */
-static mesh_t *mesh_get(const char *file, const char *path, scene_error_t *err) {
-  char real[PATH_MAX];
-  struct stat st;
-  if (resolve_mesh(file, path, real, &st, err) != 0)
-    return NULL;
-  pthread_mutex_lock(&g_cache_lock);
-  mesh_t *m = NULL;
-  for (mesh_entry_t **pp = &g_cache; *pp; pp = &(*pp)->next) {
-    mesh_entry_t *e = *pp;
-    if (strcmp(e->path, real) != 0)
-      continue;
-    if (e->dev == st.st_dev && e->ino == st.st_ino && e->size == st.st_size &&
-        e->mtime.tv_sec == st.st_mtim.tv_sec && e->mtime.tv_nsec == st.st_mtim.tv_nsec) {
-      m = mesh_ref(e->mesh);
-    } else {
-      /* The file changed on disk; snapshots keep the old mesh, new ones load the new file. */
-      *pp = e->next;
-      entry_free(e);
-    }
-    break;
-  }
-  if (!m) {
-    char why[256] = "";
-    m = mesh_load_obj(real, why, sizeof why);
-    if (!m) {
-      pthread_mutex_unlock(&g_cache_lock);
-      scrub_message(why, sizeof why, real, file);
-      set_err(err, PROTO_E_INVALID_PARAMS, path, "%s: %s", path,
-              why[0] ? why : "cannot load the mesh");
-      return NULL;
-    }
-    mesh_entry_t *e = calloc(1, sizeof *e);
-    if (e && (e->path = strdup(real))) {
-      e->dev = st.st_dev;
-      e->ino = st.st_ino;
-      e->size = st.st_size;
-      e->mtime = st.st_mtim;
-      e->mesh = mesh_ref(m);
-      e->next = g_cache;
-      g_cache = e;
-    } else {
-      free(e); /* Not cached: the snapshot still gets the mesh. */
-    }
-  }
-  pthread_mutex_unlock(&g_cache_lock);
-  return m;
-}
-
 /* ---- Volume files ---- */
 
 static uint32_t g_volume_side = 256; /* Largest side of a volume file's grid (cloud_side). */
 
 void scene_set_volume_limit(uint32_t side) {
   g_volume_side = side;
-}
-
-/* One loaded volume file. The cache holds one reference; snapshots hold their own. */
-typedef struct grid_entry {
-  char *path; /* Resolved (real) path. */
-  dev_t dev;
-  ino_t ino;
-  off_t size;
-  struct timespec mtime;
-  uint32_t dims[3];
-  int u8;
-  density_grid_t *grid;
-  struct grid_entry *next;
-} grid_entry_t;
-
-static grid_entry_t *g_grids; /* Guarded by g_cache_lock. */
-
-static void grid_entry_free(grid_entry_t *e) {
-  density_grid_unref(e->grid);
-  free(e->path);
-  free(e);
-}
-
-/* Drops cached grids no snapshot uses any more (see cache_prune). */
-static void grid_cache_prune(void) {
-  pthread_mutex_lock(&g_cache_lock);
-  for (grid_entry_t **pp = &g_grids; *pp;) {
-    grid_entry_t *e = *pp;
-    if (atomic_load(&e->grid->refs) <= 1) {
-      *pp = e->next;
-      grid_entry_free(e);
-    } else {
-      pp = &e->next;
-    }
-  }
-  pthread_mutex_unlock(&g_cache_lock);
-}
-
-/*
- * Reads the densities of 'real' ('st' its stat) into a new grid of 'dims', u8 (byte / 255) or
- * f32 (little-endian, finite and non-negative). 'file' is the client's name and 'index' the
- * volume's place in volumes[], for errors. NULL with 'err' set on failure.
- */
-static density_grid_t *grid_load(const char *real, const struct stat *st, const char *file,
-                                 int index, const uint32_t dims[3], int u8, scene_error_t *err) {
-  char p[64];
-  snprintf(p, sizeof p, "volumes.%d.file", index);
-  size_t n = (size_t)dims[0] * dims[1] * dims[2], want = n * (u8 ? 1 : 4);
-  if ((uint64_t)st->st_size != want) {
-    set_err(err, PROTO_E_INVALID_PARAMS, p,
-            "%s: \"%.64s\" holds %lld bytes, but dims %ux%ux%u of %s need %zu", p, file,
-            (long long)st->st_size, dims[0], dims[1], dims[2], u8 ? "u8" : "f32", want);
-    return NULL;
-  }
-  density_grid_t *g = density_grid_new(dims);
-  unsigned char *raw = malloc(want ? want : 1);
-  if (!g || !raw) {
-    density_grid_unref(g);
-    free(raw);
-    set_err(err, PROTO_E_INTERNAL, p, "%s: out of memory for a %zu-voxel grid", p, n);
-    return NULL;
-  }
-  FILE *f = fopen(real, "rb");
-  size_t got = f ? fread(raw, 1, want, f) : 0;
-  if (f)
-    fclose(f);
-  if (got != want) {
-    density_grid_unref(g);
-    free(raw);
-    set_err(err, PROTO_E_INVALID_PARAMS, p, "%s: cannot read \"%.64s\"", p, file);
-    return NULL;
-  }
-  for (size_t i = 0; i < n; i++) {
-    float v;
-    if (u8) {
-      v = raw[i] / 255.0f;
-    } else {
-      uint32_t b = (uint32_t)raw[4 * i] | (uint32_t)raw[4 * i + 1] << 8 |
-                   (uint32_t)raw[4 * i + 2] << 16 | (uint32_t)raw[4 * i + 3] << 24;
-      memcpy(&v, &b, sizeof v);
-      if (!isfinite(v) || v < 0) {
-        size_t x = i % dims[0], y = i / dims[0] % dims[1], z = i / dims[0] / dims[1];
-        density_grid_unref(g);
-        free(raw);
-        set_err(err, PROTO_E_INVALID_PARAMS, p,
-                "%s: \"%.64s\" has density %g at voxel (%zu, %zu, %zu); densities must be "
-                "finite and non-negative",
-                p, file, (double)v, x, y, z);
-        return NULL;
-      }
-    }
-    g->data[i] = v;
-  }
-  free(raw);
-  return g;
-}
-
-/* A counted reference to the grid of volume file 'file' for volumes['index'], loaded or cached
- * (by resolved path, inode, size, mtime, dims and format). */
-static density_grid_t *grid_get(const char *file, int index, const uint32_t dims[3], int u8,
-                                scene_error_t *err) {
-  char real[PATH_MAX], why[256], p[64];
-  struct stat st;
-  snprintf(p, sizeof p, "volumes.%d.file", index);
-  if (datapath_resolve(g_data_dir, file, 1, real, PATH_MAX, why, sizeof why, NULL) != 0) {
-    set_err(err, PROTO_E_INVALID_PARAMS, p, "%s: %s", p, why);
-    return NULL;
-  }
-  if (stat(real, &st) != 0 || !S_ISREG(st.st_mode)) {
-    set_err(err, PROTO_E_INVALID_PARAMS, p, "%s: \"%.64s\" is not a regular file", p, file);
-    return NULL;
-  }
-  pthread_mutex_lock(&g_cache_lock);
-  density_grid_t *g = NULL;
-  for (grid_entry_t **pp = &g_grids; *pp; pp = &(*pp)->next) {
-    grid_entry_t *e = *pp;
-    if (strcmp(e->path, real) != 0 || memcmp(e->dims, dims, sizeof e->dims) != 0 || e->u8 != u8)
-      continue;
-    if (e->dev == st.st_dev && e->ino == st.st_ino && e->size == st.st_size &&
-        e->mtime.tv_sec == st.st_mtim.tv_sec && e->mtime.tv_nsec == st.st_mtim.tv_nsec) {
-      g = density_grid_ref(e->grid);
-    } else {
-      *pp = e->next;
-      grid_entry_free(e);
-    }
-    break;
-  }
-  if (!g) {
-    g = grid_load(real, &st, file, index, dims, u8, err);
-    if (!g) {
-      pthread_mutex_unlock(&g_cache_lock);
-      return NULL;
-    }
-    grid_entry_t *e = calloc(1, sizeof *e);
-    if (e && (e->path = strdup(real))) {
-      e->dev = st.st_dev;
-      e->ino = st.st_ino;
-      e->size = st.st_size;
-      e->mtime = st.st_mtim;
-      memcpy(e->dims, dims, sizeof e->dims);
-      e->u8 = u8;
-      e->grid = density_grid_ref(g);
-      e->next = g_grids;
-      g_grids = e;
-    } else {
-      free(e);
-    }
-  }
-  pthread_mutex_unlock(&g_cache_lock);
-  return g;
 }
 
 /* The checks of volumes[] that the schema cannot make: boxes, file fields, unique ids. */
@@ -432,8 +157,8 @@ static int compile_volumes(const cJSON *doc, render_scene_t *rs, scene_error_t *
       vec3d(get(v, "dims"), d);
       uint32_t dims[3] = {(uint32_t)d[0], (uint32_t)d[1], (uint32_t)d[2]};
       rv->source = VOLUME_GRID;
-      rv->grid = grid_get(get(v, "file")->valuestring, i, dims,
-                          strcmp(get(v, "format")->valuestring, "u8") == 0, err);
+      rv->grid = scene_grid_get(get(v, "file")->valuestring, i, dims,
+                                strcmp(get(v, "format")->valuestring, "u8") == 0, err);
       if (!rv->grid)
         return -1;
     } else {
@@ -1071,7 +796,7 @@ static render_scene_t *compile(const cJSON *doc, particles_t *particles, density
     if (ro->shape == SHAPE_MESH) {
       char p[64];
       snprintf(p, sizeof p, "objects.%d.file", i);
-      ro->mesh = mesh_get(get(o, "file")->valuestring, p, err);
+      ro->mesh = scene_mesh_get(get(o, "file")->valuestring, p, err);
       if (!ro->mesh) {
         render_scene_unref(rs);
         return NULL;
@@ -1157,8 +882,7 @@ static int commit(scene_t *s, cJSON *doc, scene_error_t *err) {
     cloud_link_unref(s->cloud_chain);
     s->cloud_chain = NULL;
   }
-  cache_prune();
-  grid_cache_prune();
+  scene_files_prune();
   return 0;
 fail:
   if (reseed)
@@ -1166,8 +890,7 @@ fail:
   cloud_cells_unref(cells);
   density_grid_unref(density);
   cJSON_Delete(doc);
-  cache_prune();
-  grid_cache_prune();
+  scene_files_prune();
   return -1;
 }
 
@@ -1210,8 +933,7 @@ void scene_destroy(scene_t *s) {
   cloud_link_unref(s->cloud_chain);
   cJSON_Delete(s->doc);
   free(s);
-  cache_prune();
-  grid_cache_prune();
+  scene_files_prune();
 }
 
 cJSON *scene_get(const scene_t *s, const char *path, scene_error_t *err) {

@@ -65,6 +65,14 @@ struct conn {
   int authed;
   sub_t *subs;
   uint64_t requests;
+  /* Holds (conn_hold) of calls whose effect later requests must see first, such as a
+   * scene.set waiting for a file: while any is held, no further request is dispatched and the
+   * socket is not read. A batch stopped part-way waits in 'batch' from 'batch_next'. */
+  int held;
+  cJSON *batch;
+  const cJSON *batch_next;
+  reply_t *batch_reply;
+  int batch_part;
 };
 
 /* A request being served. Handlers finish it exactly once with call_result* or call_error. */
@@ -77,6 +85,7 @@ struct call {
   cJSON *params; /* Validated params with defaults filled; owned. */
   const method_t *method;
   uint64_t t_start_ns;
+  struct call_files *files; /* Files read for this call while it waited (defer.c), or NULL. */
 };
 
 /* A scene held by the server, with its free-running simulation timer. */
@@ -124,12 +133,18 @@ void conn_close(conn_t *c);
 /* Writes every reply at the head of the queue that is complete. */
 void conn_flush_replies(conn_t *c);
 void conn_unref(conn_t *c);
+/* Stops dispatching the connection's requests until a matching conn_release. */
+void conn_hold(conn_t *c);
+/* Ends a hold; the last one resumes the requests that waited, in order. */
+void conn_release(conn_t *c);
 /* Stops accepting and reading; closes every connection once its replies are written. */
 void net_stop(server_t *s);
 
 /* dispatch.c */
 /* Handles one complete request line from 'c'. */
 void dispatch_line(conn_t *c, char *line, size_t len);
+/* Dispatches the rest of a batch that a hold stopped part-way, until done or held again. */
+void dispatch_resume(conn_t *c);
 /* Finishes 'call' with 'result' (taken). */
 void call_result(call_t *call, cJSON *result);
 /* Finishes 'call' with 'result' (taken) and binary data (taken), as an attachment or, when

@@ -18,8 +18,9 @@
 #include <unistd.h>
 
 #include "datapath.h"
-#include "files.h"
+#include "defer.h"
 #include "dispatch.h"
+#include "files.h"
 
 #define SNAPSHOT_VERSION 1
 #define SNAPSHOT_MAX_BYTES (256u << 20)
@@ -334,6 +335,8 @@ static int cloud_fits(const cJSON *doc, const cloud_cells_t *c) {
 static void load_done(uv_work_t *req, int status) {
   snap_work_t *w = req->data;
   call_t *call = w->call;
+  conn_t *c = call->conn;
+  c->refs++; /* Answering the call may drop the last reference of a closed connection. */
   scene_entry_t *e = server_find_scene(call->srv, w->scene);
   char why[160] = "";
   cJSON *head = NULL;
@@ -362,7 +365,12 @@ static void load_done(uv_work_t *req, int status) {
                  w->file);
     } else {
       scene_error_t err = {0};
-      if (scene_replace(e->scene, doc, &err) != 0) {
+      scene_file_t want;
+      defer_arm(call, &want);
+      int rc = scene_replace(e->scene, doc, &err);
+      if (defer_check(call, rc, &err, &want)) {
+        /* A file the snapshot names is being read: the call runs again after, from the top. */
+      } else if (rc != 0) {
         call_error(call, PROTO_E_INVALID_PARAMS, err.path[0] ? err.path : "file",
                    "invalid params: snapshot \"%s\": %s", w->file, err.message);
       } else {
@@ -392,6 +400,8 @@ static void load_done(uv_work_t *req, int status) {
   cloud_cells_unref(w->cells);
   density_grid_unref(w->density);
   free(w);
+  conn_release(c);
+  conn_unref(c);
 }
 
 static void scene_load(call_t *call) {
@@ -402,6 +412,8 @@ static void scene_load(call_t *call) {
   if (!w)
     return;
   snprintf(w->scene, sizeof w->scene, "%s", e->scene->name);
+  /* Later requests of the connection wait for the scene they would see. */
+  conn_hold(call->conn);
   uv_queue_work(call->srv->loop, &w->req, load_work, load_done);
 }
 

@@ -1,0 +1,130 @@
+/*
+ * Requests that wait for files (defer.h): the thread-pool read, the hold on the connection,
+ * and the files kept for the call.
+ */
+#include "defer.h"
+
+#include <stdlib.h>
+#include <string.h>
+
+#include "dispatch.h"
+
+/* The files read for one call, referenced until it is answered. */
+struct call_files {
+  int n;
+  scene_pin_t *pins;
+  char **paths;     /* Their resolved paths. */
+  int inline_reads; /* Read any further file on the spot (one changed while waiting). */
+};
+
+typedef struct load_job {
+  uv_work_t req;
+  call_t *call;
+  scene_file_t file;
+  scene_pin_t pin;
+  scene_error_t err;
+  int rc;
+} load_job_t;
+
+void defer_arm(call_t *call, scene_file_t *want) {
+  scene_files_defer(call->files && call->files->inline_reads ? NULL : want);
+}
+
+static int read_before(const call_t *call, const char *real) {
+  for (int i = 0; call->files && i < call->files->n; i++)
+    if (strcmp(call->files->paths[i], real) == 0)
+      return 1;
+  return 0;
+}
+
+/* Keeps 'pin' for the call (taken). Returns 0, or -1 when out of memory (pin released). */
+static int keep(call_t *call, const char *real, scene_pin_t *pin) {
+  struct call_files *f = call->files;
+  if (!f && !(f = call->files = calloc(1, sizeof *f))) {
+    scene_pin_release(pin);
+    return -1;
+  }
+  scene_pin_t *pins = realloc(f->pins, (size_t)(f->n + 1) * sizeof *pins);
+  if (pins)
+    f->pins = pins;
+  char **paths = pins ? realloc(f->paths, (size_t)(f->n + 1) * sizeof *paths) : NULL;
+  if (paths)
+    f->paths = paths;
+  char *copy = paths ? strdup(real) : NULL;
+  if (!copy) {
+    scene_pin_release(pin);
+    return -1;
+  }
+  f->pins[f->n] = *pin;
+  f->paths[f->n++] = copy;
+  return 0;
+}
+
+void defer_release(call_t *call) {
+  struct call_files *f = call->files;
+  if (!f)
+    return;
+  for (int i = 0; i < f->n; i++) {
+    scene_pin_release(&f->pins[i]);
+    free(f->paths[i]);
+  }
+  free(f->pins);
+  free(f->paths);
+  free(f);
+  call->files = NULL;
+}
+
+static void load_work(uv_work_t *req) {
+  load_job_t *j = req->data;
+  j->rc = scene_file_load(&j->file, &j->pin, &j->err);
+}
+
+static void load_done(uv_work_t *req, int status) {
+  load_job_t *j = req->data;
+  call_t *call = j->call;
+  conn_t *c = call->conn;
+  c->refs++; /* Answering the call may drop the last reference of a closed connection. */
+  if (status != 0) {
+    scene_pin_release(&j->pin);
+    call_error(call, PROTO_E_INTERNAL, j->file.path, "internal error: %s: \"%s\" was not read",
+               j->file.path, j->file.file);
+  } else if (j->rc != 0) {
+    call_error(call, j->err.code, j->err.path, "%s: %s", proto_err_message(j->err.code),
+               j->err.message);
+  } else if (keep(call, j->file.real, &j->pin) != 0) {
+    call_error(call, PROTO_E_INTERNAL, j->file.path, "internal error: out of memory");
+  } else {
+    call->method->handler(call);
+  }
+  free(j);
+  conn_release(c);
+  conn_unref(c);
+}
+
+int defer_check(call_t *call, int rc, const scene_error_t *err, const scene_file_t *want) {
+  scene_files_defer(NULL);
+  if (rc == 0 || err->code != SCENE_DEFERRED)
+    return 0;
+  if (read_before(call, want->real)) {
+    /* Read for this call already, and changed on disk since: read it on the spot, rather than
+     * chase a file that keeps changing. */
+    call->files->inline_reads = 1;
+    call->method->handler(call);
+    return 1;
+  }
+  load_job_t *j = calloc(1, sizeof *j);
+  if (!j) {
+    call_error(call, PROTO_E_INTERNAL, want->path, "internal error: out of memory");
+    return 1;
+  }
+  j->req.data = j;
+  j->call = call;
+  j->file = *want;
+  if (uv_queue_work(call->srv->loop, &j->req, load_work, load_done) != 0) {
+    free(j);
+    call_error(call, PROTO_E_INTERNAL, want->path, "internal error: cannot queue the read");
+    return 1;
+  }
+  conn_hold(call->conn);
+  return 1;
+}
