@@ -25,11 +25,13 @@
  * 1 / (4 VOL_SHADOW_TAPS) of a segment where it matters, below what the eye sees, while the
  * lateral offsets blend a shaft's edge across the pixel.
  *
- * Like the waves kernel, a work-item shades VOL_PACKET (16) adjacent pixels of a row in the lanes
- * of a float16, so that PoCL's code is vector code filling AVX-512's registers; grid and
- * shadow-map lookups are per-lane loads. Sixteen lanes rather than the objects kernel's eight
- * took a third off the pass: the loads per pixel stay, the arithmetic and the spills of the
- * values that live across the sample loop are shared by twice the pixels.
+ * A work-item shades a 4 x 4 block of pixels (VOL_PACKET_W x VOL_PACKET_H) in the lanes of a
+ * float16, so that PoCL's code is vector code filling AVX-512's registers. Sixteen lanes rather
+ * than the objects kernel's eight took a third off the pass: the loads per pixel stay, the
+ * arithmetic and the spills of the values that live across the sample loop are shared by twice
+ * the pixels. A square block rather than sixteen pixels of a row keeps the lanes' samples close
+ * together, so that they fall in fewer voxels of a grid, each of which is loaded once for the
+ * packet (vol_trilinear): 30% off a cloud frame. Shadow-map lookups are per-lane loads.
  */
 #include "common.h"
 #include "volume.h"
@@ -40,6 +42,13 @@ typedef int16 vi;
 #define VOL_LANES                                                                                  \
   ((vf)(0.5f, 1.5f, 2.5f, 3.5f, 4.5f, 5.5f, 6.5f, 7.5f, 8.5f, 9.5f, 10.5f, 11.5f, 12.5f, 13.5f,    \
         14.5f, 15.5f))
+/* A packet's pixels: lane k is column k % 4 and row k / 4 of a 4 x 4 block. */
+#define VOL_LANE_X                                                                                 \
+  ((vf)(0.5f, 1.5f, 2.5f, 3.5f, 0.5f, 1.5f, 2.5f, 3.5f, 0.5f, 1.5f, 2.5f, 3.5f, 0.5f, 1.5f, 2.5f,  \
+        3.5f))
+#define VOL_LANE_Y                                                                                 \
+  ((vf)(0.5f, 0.5f, 0.5f, 0.5f, 1.5f, 1.5f, 1.5f, 1.5f, 2.5f, 2.5f, 2.5f, 2.5f, 3.5f, 3.5f, 3.5f,  \
+        3.5f))
 #define convert_vi convert_int16
 #define convert_vf convert_float16
 #define as_vf as_float16
@@ -169,7 +178,7 @@ static inline vf vol_shadow(__global const float *restrict smap, int pitch, cons
 }
 
 /*
- * One packet of VOL_PACKET pixels per work-item at pixel (VOL_PACKET * global x, global y),
+ * One packet of 4 x 4 pixels per work-item, its top left pixel at (4 global x, 4 global y),
  * over the padded buffers of the frame 'f' that the objects pass set up. 'vols' holds 'nvol'
  * records (volume.h) nearest first, 'data' their grids; the result is composited over
  * 'linear' (colour and alpha) in place.
@@ -184,18 +193,19 @@ __kernel void volumes(vfx_frame_t f, vfx_shadow_t sh, __global const float *rest
                       __global const float4 *restrict data, __global const float *restrict smap,
                       int smap_pitch, __global const float *restrict depth,
                       __global float *restrict linear) {
-  int x0 = VOL_PACKET * get_global_id(0), y = get_global_id(1);
-  int o = y * f.pitch + x0;
+  int x0 = VOL_PACKET_W * get_global_id(0), y0 = VOL_PACKET_H * get_global_id(1);
+  int o = y0 * f.pitch + x0, row = f.pitch;
 
   float ex = f.eye[0], ey = f.eye[1], ez = f.eye[2];
-  vf px = (float)x0 + VOL_LANES;
-  float py = y + 0.5f;
+  vf px = (float)x0 + VOL_LANE_X, py = (float)y0 + VOL_LANE_Y;
   vf dx = f.base[0] + px * f.step_x[0] + py * f.step_y[0];
   vf dy = f.base[1] + px * f.step_x[1] + py * f.step_y[1];
   vf dz = f.base[2] + px * f.step_x[2] + py * f.step_y[2];
   vf il = 1.0f / sqrt(dx * dx + dy * dy + dz * dz);
   dx *= il, dy *= il, dz *= il;
-  vf tend = fmin(vload16(0, depth + o), f.far_);
+  vf tend = fmin((vf)(vload4(0, depth + o), vload4(0, depth + o + row),
+                      vload4(0, depth + o + 2 * row), vload4(0, depth + o + 3 * row)),
+                 f.far_);
 
   float lx = f.light_dir[0], ly = f.light_dir[1], lz = f.light_dir[2];
   /* The shadow map's coordinates of the eye (scalars), and the half-pixel offset across the
@@ -290,8 +300,9 @@ __kernel void volumes(vfx_frame_t f, vfx_shadow_t sh, __global const float *rest
   }
 
   /* Over what the earlier passes drew (eq. 9): C = T * behind + the volume's light. */
-  float16 p0 = vload16(0, linear + 4 * o), p1 = vload16(1, linear + 4 * o);
-  float16 p2 = vload16(2, linear + 4 * o), p3 = vload16(3, linear + 4 * o);
+  __global float *out = linear + 4 * o;
+  float16 p0 = vload16(0, out), p1 = vload16(0, out + 4 * row);
+  float16 p2 = vload16(0, out + 8 * row), p3 = vload16(0, out + 12 * row);
   vf br = (vf)(p0.s048c, p1.s048c, p2.s048c, p3.s048c);
   vf bg = (vf)(p0.s159d, p1.s159d, p2.s159d, p3.s159d);
   vf bb = (vf)(p0.s26ae, p1.s26ae, p2.s26ae, p3.s26ae);
@@ -300,16 +311,16 @@ __kernel void volumes(vfx_frame_t f, vfx_shadow_t sh, __global const float *rest
   vf a = fma(tr, ba, 1.0f - tr);
   vstore16((float16)(r.s0, gg.s0, b.s0, a.s0, r.s1, gg.s1, b.s1, a.s1, r.s2, gg.s2, b.s2, a.s2,
                      r.s3, gg.s3, b.s3, a.s3),
-           0, linear + 4 * o);
+           0, out);
   vstore16((float16)(r.s4, gg.s4, b.s4, a.s4, r.s5, gg.s5, b.s5, a.s5, r.s6, gg.s6, b.s6, a.s6,
                      r.s7, gg.s7, b.s7, a.s7),
-           1, linear + 4 * o);
+           0, out + 4 * row);
   vstore16((float16)(r.s8, gg.s8, b.s8, a.s8, r.s9, gg.s9, b.s9, a.s9, r.sa, gg.sa, b.sa, a.sa,
                      r.sb, gg.sb, b.sb, a.sb),
-           2, linear + 4 * o);
+           0, out + 8 * row);
   vstore16((float16)(r.sc, gg.sc, b.sc, a.sc, r.sd, gg.sd, b.sd, a.sd, r.se, gg.se, b.se, a.se,
                      r.sf, gg.sf, b.sf, a.sf),
-           3, linear + 4 * o);
+           0, out + 12 * row);
 }
 
 /* ---- The shadow map ---------------------------------------------------------------------- */

@@ -27,8 +27,11 @@
 #define VOL_PHASE_G 21 /* Henyey-Greenstein asymmetry g in (-1, 1). */
 #define VOL_STRIDE 32
 
-/* Pixels of a row that a volume work-item shades, one per vector lane (a float16). */
+/* The pixels a volume work-item shades, one per vector lane (a float16): a block of
+ * VOL_PACKET_W x VOL_PACKET_H. */
 #define VOL_PACKET 16
+#define VOL_PACKET_W 4
+#define VOL_PACKET_H 4
 
 /* Shadow-map tests per sample segment (kernels/volume.cl, vol_shadow). */
 #define VOL_SHADOW_TAPS 4

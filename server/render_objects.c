@@ -7,6 +7,7 @@
 #include <math.h>
 
 #include "render_internal.h"
+#include "../kernels/volume.h"
 
 /* ---- Transforms ---------------------------------------------------------------------------- */
 
@@ -574,7 +575,11 @@ int render_pass_objects(renderer_t *r, const render_scene_t *scene, const render
   vfx_frame_t f;
   memset(&f, 0, sizeof f);
   r->pitch = round_up(p->width, render_row_pixels(r));
-  r->rows = round_up(p->height, r->objects_local[1]);
+  /* Whole work-groups of every pass, and whole volume packets (VOL_PACKET_H rows). */
+  size_t rows_unit = r->objects_local[1];
+  while (rows_unit % VOL_PACKET_H)
+    rows_unit *= 2;
+  r->rows = round_up(p->height, rows_unit);
   f.width = (int)p->width;
   f.height = (int)p->height;
   f.pitch = (int)r->pitch;

@@ -878,11 +878,12 @@ int render_pass_volumes(renderer_t *r, const render_scene_t *scene, unsigned lay
     cr = clSetKernelArg(k, 7, sizeof(cl_mem), &r->depth);
   if (cr == CL_SUCCESS)
     cr = clSetKernelArg(k, 8, sizeof(cl_mem), &r->linear);
-  size_t global[2] = {r->pitch / VOL_PACKET, r->rows};
+  size_t global[2] = {r->pitch / VOL_PACKET_W, r->rows / VOL_PACKET_H};
   /* The objects work-group's pixels, or fewer if the device shrank it below one packet. */
-  size_t local[2] = {r->objects_local[0] * PACKET / VOL_PACKET, r->objects_local[1]};
-  if (local[0] == 0)
-    local[0] = 1;
+  size_t local[2] = {r->objects_local[0] * PACKET / VOL_PACKET_W,
+                     r->objects_local[1] / VOL_PACKET_H};
+  if (local[1] == 0)
+    local[1] = 1;
   if (cr == CL_SUCCESS)
     cr = clEnqueueNDRangeKernel(r->dev.queue, k, 2, NULL, global, local, 0, NULL, NULL);
   if (cr == CL_SUCCESS)
