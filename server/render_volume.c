@@ -18,10 +18,10 @@
  * overlapping volumes are sampled one after the other, not merged.
  */
 #include <math.h>
-#include <pthread.h>
 #include <sched.h>
 #include <stdatomic.h>
 
+#include "parallel.h"
 #include "render_internal.h"
 #include "../kernels/volume.h"
 
@@ -174,37 +174,50 @@ static int bake_noise(const rvolume_t *v, vol_entry_t *e) {
 
 /* ---- Light grid ---------------------------------------------------------------------------- */
 
-/* One axis of the step up the light: the two voxels (as offsets) either side of the point
- * i + d and the weight of the second, or ok = 0 where the point lies beside the grid. */
-typedef struct axis_tap {
-  size_t i0, i1;
-  float f;
-  int ok;
-} axis_tap_t;
+/* One axis of the step up the light, per row or column of a slice: the two voxels (as offsets)
+ * either side of the point i + d and the weight of the second, and 1 where the point lies in
+ * the grid, 0 beside it. Kept as arrays so the sweep's inner loop vectorises. */
+typedef struct axis_taps {
+  uint32_t *i0, *i1;
+  float *f, *in;
+} axis_taps_t;
 
-static void axis_taps(axis_tap_t *t, uint32_t n, double d, size_t stride) {
+static int axis_taps(axis_taps_t *t, uint32_t n, double d, size_t stride) {
+  t->i0 = malloc(n * sizeof *t->i0), t->i1 = malloc(n * sizeof *t->i1);
+  t->f = malloc(n * sizeof *t->f), t->in = malloc(n * sizeof *t->in);
+  if (!t->i0 || !t->i1 || !t->f || !t->in)
+    return -1;
   for (uint32_t i = 0; i < n; i++) {
     double p = i + d;
-    t[i].ok = p >= -0.5 && p <= n - 0.5;
+    t->in[i] = p >= -0.5 && p <= n - 0.5;
     double q = p < 0 ? 0 : p > n - 1.0 ? n - 1.0 : p;
     uint32_t i0 = (uint32_t)q, i1 = i0 + 1 < n ? i0 + 1 : i0;
-    t[i].i0 = i0 * stride, t[i].i1 = i1 * stride;
-    t[i].f = (float)(q - i0);
+    t->i0[i] = (uint32_t)(i0 * stride), t->i1[i] = (uint32_t)(i1 * stride);
+    t->f[i] = (float)(q - i0);
   }
+  return 0;
 }
 
-/* Voxels from which the light sweep runs on two threads (64³ and up). */
+static void axis_taps_free(axis_taps_t *t) {
+  free(t->i0);
+  free(t->i1);
+  free(t->f);
+  free(t->in);
+}
+
+/* Voxels from which the light sweep runs on a thread per core (64³ and up). */
 #define SWEEP_THREAD_MIN ((size_t)1 << 18)
 
-/* A barrier for two threads that spins, then yields: the sweep meets it once a slice, and a
+/* A barrier for the sweep's threads that spins, then yields: they meet it once a slice, and a
  * sleeping wait costs more than a slice of a small grid. */
-typedef struct pair_barrier {
+typedef struct sweep_barrier {
   atomic_uint count, phase;
-} pair_barrier_t;
+  unsigned n;
+} sweep_barrier_t;
 
-static void pair_wait(pair_barrier_t *b) {
+static void sweep_wait(sweep_barrier_t *b) {
   unsigned ph = atomic_load_explicit(&b->phase, memory_order_acquire);
-  if (atomic_fetch_add_explicit(&b->count, 1, memory_order_acq_rel) == 1) {
+  if (atomic_fetch_add_explicit(&b->count, 1, memory_order_acq_rel) == b->n - 1) {
     atomic_store_explicit(&b->count, 0, memory_order_relaxed);
     atomic_store_explicit(&b->phase, ph + 1, memory_order_release);
     return;
@@ -220,11 +233,11 @@ typedef struct sweep {
   const uint32_t *n;
   int a, b, c, dir;
   size_t stride[3];
-  const axis_tap_t *tb, *tc;
+  axis_taps_t tb, tc;
   const float *sg;
   float *lg;
-  float half;          /* -1/2 the world length of a step between slices. */
-  pair_barrier_t *bar; /* Between the two threads' slices, or NULL with one thread. */
+  float half;           /* -1/2 the world length of a step between slices. */
+  sweep_barrier_t *bar; /* Between the threads' slices, or NULL with one thread. */
 } sweep_t;
 
 /* The rows [j0, j1) (axis b) of every slice of a sweep. */
@@ -233,41 +246,88 @@ typedef struct sweep_part {
   uint32_t j0, j1;
 } sweep_part_t;
 
+/*
+ * exp(x) for finite x <= 0, to about 2e-7 relative, as the kernels' vol_exp_neg does it: 2^y
+ * for y = x log2(e), split into the nearest integer n and f in [-1/2, 1/2], 2^f from Cephes'
+ * degree-6 polynomial and 2^n put into the exponent bits. Unlike expf it is inlined, so the
+ * sweep's rows vectorise.
+ */
+static inline float exp_neg(float x) {
+  float y = (x > -87.0f ? x : -87.0f) * 1.44269504088896341f;
+  float n = (y + 12582912.0f) - 12582912.0f, f = y - n;
+  float p = f * 1.535336188319500e-4f + 1.339887440266574e-3f;
+  p = p * f + 9.618437357674640e-3f;
+  p = p * f + 5.550332471162809e-2f;
+  p = p * f + 2.402264791363012e-1f;
+  p = p * f + 6.931472028550421e-1f;
+  p = p * f + 1.0f;
+  int32_t bits = ((int32_t)n + 127) << 23;
+  float scale;
+  memcpy(&scale, &bits, sizeof scale);
+  return p * scale;
+}
+
+/*
+ * One row of a slice: 'nc' voxels 'sc' apart of extinction 'here', transmittance into 'out',
+ * from the two rows 'l0', 'l1' (transmittance) and 's0', 's1' (extinction) of the slice up the
+ * light, blended by 'fb' across rows and by the column taps 'tc' along them; without those rows
+ * (NULL), from the light unobstructed. Empty space (tau 0) passes the light on unchanged.
+ */
+PAR_CLONES static void sweep_row(float *restrict out, const float *restrict here, size_t sc,
+                                 uint32_t nc, const float *restrict l0, const float *restrict l1,
+                                 const float *restrict s0, const float *restrict s1, float fb,
+                                 const axis_taps_t *tc, float half) {
+  if (!l0) {
+    for (uint32_t k = 0; k < nc; k++)
+      out[k * sc] = exp_neg(half * here[k * sc]);
+    return;
+  }
+  const uint32_t *restrict c0 = tc->i0, *restrict c1 = tc->i1;
+  const float *restrict fc = tc->f, *restrict in = tc->in;
+  float gb = 1 - fb;
+#define SWEEP_VOXEL(at)                                                                            \
+  do {                                                                                             \
+    float g = fc[k], h = 1 - g;                                                                    \
+    float t = h * (gb * l0[c0[k]] + fb * l1[c0[k]]) + g * (gb * l0[c1[k]] + fb * l1[c1[k]]);       \
+    float u = h * (gb * s0[c0[k]] + fb * s1[c0[k]]) + g * (gb * s0[c1[k]] + fb * s1[c1[k]]);       \
+    t = in[k] > 0 ? t : 1.0f;                                                                      \
+    u = in[k] > 0 ? u : 0.0f;                                                                      \
+    out[at] = t * exp_neg(half * (here[at] + u));                                                  \
+  } while (0)
+  /* Rows along x (the usual case) are contiguous: that loop vectorises. */
+  if (sc == 1)
+    for (uint32_t k = 0; k < nc; k++)
+      SWEEP_VOXEL(k);
+  else
+    for (uint32_t k = 0; k < nc; k++)
+      SWEEP_VOXEL(k * sc);
+#undef SWEEP_VOXEL
+}
+
 static void *sweep_rows(void *arg) {
   const sweep_part_t *p = arg;
   const sweep_t *w = p->w;
   const uint32_t *n = w->n;
   const size_t *stride = w->stride;
-  const float *sg = w->sg;
-  float *lg = w->lg;
   int a = w->a, dir = w->dir;
   int first = dir > 0 ? (int)n[a] - 1 : 0;
   for (int s = first; s >= 0 && s < (int)n[a]; s -= dir) {
     int up = s + dir, has_up = up >= 0 && up < (int)n[a];
     size_t base = s * stride[a], ubase = up * stride[a];
     for (uint32_t j = p->j0; j < p->j1; j++) {
-      const axis_tap_t *pj = &w->tb[j];
-      for (uint32_t k = 0; k < n[w->c]; k++) {
-        const axis_tap_t *pk = &w->tc[k];
-        size_t at = base + j * stride[w->b] + k * stride[w->c];
-        float here = sg[at], t_up = 1, s_up = 0;
-        if (has_up && pj->ok && pk->ok) {
-          size_t i00 = ubase + pj->i0 + pk->i0, i10 = ubase + pj->i1 + pk->i0;
-          size_t i01 = ubase + pj->i0 + pk->i1, i11 = ubase + pj->i1 + pk->i1;
-          float fb = pj->f, fc = pk->f;
-          t_up = (1 - fc) * ((1 - fb) * lg[i00] + fb * lg[i10]) +
-                 fc * ((1 - fb) * lg[i01] + fb * lg[i11]);
-          s_up = (1 - fc) * ((1 - fb) * sg[i00] + fb * sg[i10]) +
-                 fc * ((1 - fb) * sg[i01] + fb * sg[i11]);
-        }
-        /* Without a point up the light the ray leaves the box within about half a step. Empty
-         * space passes the light on unchanged, without the exponential. */
-        float tau = here + s_up;
-        lg[at] = tau > 0 ? t_up * expf(w->half * tau) : t_up;
+      size_t at = base + j * stride[w->b];
+      /* Without a point up the light the ray leaves the box within about half a step. */
+      if (has_up && w->tb.in[j] > 0) {
+        size_t r0 = ubase + w->tb.i0[j], r1 = ubase + w->tb.i1[j];
+        sweep_row(w->lg + at, w->sg + at, stride[w->c], n[w->c], w->lg + r0, w->lg + r1, w->sg + r0,
+                  w->sg + r1, w->tb.f[j], &w->tc, w->half);
+      } else {
+        sweep_row(w->lg + at, w->sg + at, stride[w->c], n[w->c], NULL, NULL, NULL, NULL, 0, &w->tc,
+                  w->half);
       }
     }
     if (w->bar)
-      pair_wait(w->bar);
+      sweep_wait(w->bar);
   }
   return NULL;
 }
@@ -296,7 +356,9 @@ static int light_grid(vol_entry_t *e, const float *dens, float sigma, const floa
   for (int k = 1; k < 3; k++)
     if (fabs(lv[k]) > fabs(lv[a]))
       a = k;
-  int b = (a + 1) % 3, c = (a + 2) % 3;
+  /* The rows of a slice run along c, x when x is not the sweep's axis, so that they are
+   * contiguous and vectorise. */
+  int b = a == 0 ? 1 : a == 1 ? 2 : 1, c = a == 0 ? 2 : 0;
   if (!(fabs(lv[a]) > 0)) {
     for (size_t i = 0; i < nl; i++)
       lg[i] = 1;
@@ -308,47 +370,37 @@ static int light_grid(vol_entry_t *e, const float *dens, float sigma, const floa
   size_t stride[3] = {1, n[0], (size_t)n[0] * n[1]};
   /* Where the ray from a voxel of row j (axis b) or column k (axis c) meets the slice up the
    * light is the same in every slice: its two neighbours and weight per row and per column,
-   * and whether it falls inside the grid. Two threads take half the rows of every slice each,
-   * meeting between slices (a slice reads the one before it). */
-  axis_tap_t *tb = malloc(n[b] * sizeof *tb), *tc = malloc(n[c] * sizeof *tc);
-  if (tb == NULL || tc == NULL) {
-    free(tb);
-    free(tc);
-    return -1;
-  }
-  axis_taps(tb, n[b], db, stride[b]);
-  axis_taps(tc, n[c], dc, stride[c]);
+   * and whether it falls inside the grid. The threads take a share of the rows of every slice
+   * each, meeting between slices (a slice reads the one before it). */
   sweep_t w = {.n = n,
                .a = a,
                .b = b,
                .c = c,
                .dir = dir,
                .stride = {stride[0], stride[1], stride[2]},
-               .tb = tb,
-               .tc = tc,
                .sg = sg,
                .lg = lg,
                .half = (float)(-0.5 * step)};
-  sweep_part_t part[2] = {{&w, 0, n[b]}, {&w, n[b] / 2, n[b]}};
-  pair_barrier_t bar = {0};
-  pthread_t th;
-  if (nl >= SWEEP_THREAD_MIN && n[b] >= 2) {
-    part[0].j1 = n[b] / 2;
+  int rc = axis_taps(&w.tb, n[b], db, stride[b]) | axis_taps(&w.tc, n[c], dc, stride[c]);
+  if (rc == 0) {
+    int parts = par_parts(nl, SWEEP_THREAD_MIN);
+    if ((uint32_t)parts > n[b])
+      parts = 1;
+    sweep_barrier_t bar = {.n = (unsigned)parts};
+    sweep_part_t part[PAR_MAX];
+    for (int i = 0; i < parts; i++)
+      part[i] = (sweep_part_t){&w, (uint32_t)((uint64_t)n[b] * i / parts),
+                               (uint32_t)((uint64_t)n[b] * (i + 1) / parts)};
     w.bar = &bar;
-    if (pthread_create(&th, NULL, sweep_rows, &part[1]) == 0) {
-      sweep_rows(&part[0]);
-      pthread_join(th, NULL);
-    } else {
+    if (parts == 1 || par_run_together(sweep_rows, part, sizeof *part, parts) != 0) {
       w.bar = NULL;
-      part[0].j1 = n[b];
+      part[0] = (sweep_part_t){&w, 0, n[b]};
       sweep_rows(&part[0]);
     }
-  } else {
-    sweep_rows(&part[0]);
   }
-  free(tb);
-  free(tc);
-  return 0;
+  axis_taps_free(&w.tb);
+  axis_taps_free(&w.tc);
+  return rc ? -1 : 0;
 }
 
 /*
@@ -366,7 +418,7 @@ static int reserve(float **buf, size_t *cap, size_t n) {
   return *buf ? 0 : -1;
 }
 
-/* Rows (of dims[0] voxels) of a grid from which pack runs on two threads (64³ and up). */
+/* Rows (of dims[0] voxels) of a grid from which pack runs on a thread per core (64³ and up). */
 #define PACK_THREAD_MIN ((size_t)1 << 12)
 
 /* The rows [row0, row1) of pack's work, and the voxel bounds of their non-zero density. */
@@ -415,23 +467,16 @@ static int pack(vol_entry_t *e, const float *dens, const float *lg) {
   size_t n = (size_t)e->dims[0] * e->dims[1] * e->dims[2], rows = n / e->dims[0];
   if (reserve(&e->packed, &e->packed_cap, 4 * n) != 0)
     return -1;
-  pack_part_t part[2] = {{e, dens, lg, 0, rows, {0}, {0}}, {e, dens, lg, rows / 2, rows, {0}, {0}}};
-  pthread_t th;
-  int two = rows >= PACK_THREAD_MIN;
-  if (two) {
-    part[0].row1 = rows / 2;
-    two = pthread_create(&th, NULL, pack_rows, &part[1]) == 0;
-    if (!two)
-      part[0].row1 = rows;
-  }
-  pack_rows(&part[0]);
-  if (two) {
-    pthread_join(th, NULL);
+  int parts = par_parts(rows, PACK_THREAD_MIN);
+  pack_part_t part[PAR_MAX];
+  for (int i = 0; i < parts; i++)
+    part[i] = (pack_part_t){e, dens, lg, rows * i / parts, rows * (i + 1) / parts, {0}, {0}};
+  par_run(pack_rows, part, sizeof *part, parts);
+  for (int i = 1; i < parts; i++)
     for (int k = 0; k < 3; k++) {
-      part[0].lo[k] = part[1].lo[k] < part[0].lo[k] ? part[1].lo[k] : part[0].lo[k];
-      part[0].hi[k] = part[1].hi[k] > part[0].hi[k] ? part[1].hi[k] : part[0].hi[k];
+      part[0].lo[k] = part[i].lo[k] < part[0].lo[k] ? part[i].lo[k] : part[0].lo[k];
+      part[0].hi[k] = part[i].hi[k] > part[0].hi[k] ? part[i].hi[k] : part[0].hi[k];
     }
-  }
   const int *lo = part[0].lo, *hi = part[0].hi;
   e->empty = hi[0] < 0;
   for (int k = 0; k < 3 && !e->empty; k++) {

@@ -17,21 +17,15 @@
 #include "sim_cloud.h"
 
 #include <math.h>
-#include <pthread.h>
 #include <stdlib.h>
 #include <string.h>
-#include <unistd.h>
+
+#include "parallel.h"
 
 #define GOLDEN 0x9E3779B1u
 
-/* The hot loops are built for AVX-512, AVX2 and the baseline, picked at load time (GCC's
- * function multi-versioning; not under ASan, which does not support it). */
-#if defined(__x86_64__) && defined(__GNUC__) && !defined(__clang__) &&                             \
-    !defined(__SANITIZE_ADDRESS__)
-#define CLONES __attribute__((target_clones("avx512f", "avx2", "default")))
-#else
-#define CLONES
-#endif
+/* The hot loops are built for each vector width (parallel.h). */
+#define CLONES PAR_CLONES
 
 cloud_cells_t *cloud_cells_new(const uint32_t n[3]) {
   for (int i = 0; i < 3; i++)
@@ -182,6 +176,30 @@ double cloud_shape(const cloud_params_t *p, double x, double y, double z) {
   return best;
 }
 
+/*
+ * cloud_shape(p, x, y, z) for x in [0, nx) into s: the same operations on the same values, to
+ * the last bit (this file is built without contracting a * b + c into fused multiply-adds),
+ * with each ellipsoid's y and z terms computed once for the row and the ellipsoids that miss
+ * the row skipped (there dx² + dy² + dz² >= dy² + dz² >= 1, rounding being monotonic).
+ */
+static void row_shape(const cloud_params_t *p, uint32_t nx, double y, double z, double *s) {
+  for (uint32_t x = 0; x < nx; x++)
+    s[x] = 0;
+  for (int i = 0; i < p->nellipsoids && i < CLOUD_MAX_ELLIPSOIDS; i++) {
+    const cloud_ellipsoid_t *e = &p->ellipsoids[i];
+    double dy = (y - e->center[1]) / e->radii[1];
+    double dz = (z - e->center[2]) / e->radii[2];
+    double dyy = dy * dy, dzz = dz * dz;
+    if (!(dyy + dzz < 1))
+      continue;
+    for (uint32_t x = 0; x < nx; x++) {
+      double dx = (x - e->center[0]) / e->radii[0];
+      double v = 1.0 - (dx * dx + dyy + dzz);
+      s[x] = v > s[x] ? v : s[x];
+    }
+  }
+}
+
 /* Whether row (y, z) passes through any ellipsoid (or there are none). */
 static int row_in_shape(const cloud_params_t *p, double y, double z) {
   if (p->nellipsoids <= 0)
@@ -200,14 +218,13 @@ static int row_in_shape(const cloud_params_t *p, double y, double z) {
  * The mask of the cells of word 'w' of row (y, z) that take an event of probability 'prob'
  * (times the shape when 'shaped'), drawing from 'base'.
  */
-static inline uint64_t draw_mask(const cloud_cells_t *c, const cloud_params_t *p, uint32_t base,
-                                 double prob, uint64_t thr, int shaped, uint32_t w, uint32_t y,
-                                 uint32_t z) {
+static inline uint64_t draw_mask(const cloud_cells_t *c, uint32_t base, double prob, uint64_t thr,
+                                 const double *shape, uint32_t w, uint32_t y, uint32_t z) {
   uint32_t x0 = w * 64, nx = c->n[0];
   uint32_t nb = nx - x0 < 64 ? nx - x0 : 64;
   uint32_t cell0 = x0 + nx * (y + c->n[1] * z);
   uint64_t m = 0;
-  if (!shaped) {
+  if (!shape) {
     if (thr > UINT32_MAX)
       return nb == 64 ? ~(uint64_t)0 : ((uint64_t)1 << nb) - 1;
     /* Hashes and compares of 64 cells as one vector loop, then the 0/1 bytes packed eight at
@@ -224,7 +241,7 @@ static inline uint64_t draw_mask(const cloud_cells_t *c, const cloud_params_t *p
     return nb == 64 ? m : m & (((uint64_t)1 << nb) - 1);
   }
   for (uint32_t b = 0; b < nb; b++) {
-    double s = cloud_shape(p, x0 + b, y, z);
+    double s = shape[x0 + b];
     if (s > 0 && (uint64_t)cell_hash(base, cell0 + b) < cloud_threshold(prob * s))
       m |= (uint64_t)1 << b;
   }
@@ -253,9 +270,9 @@ CLONES static void seed_cells(cloud_cells_t *c, const cloud_params_t *p, double 
         }
         if (!inside || !th)
           continue;
-        uint64_t h = inside & draw_mask(c, p, bh, hum, th, 0, w, y, z);
+        uint64_t h = inside & draw_mask(c, bh, hum, th, NULL, w, y, z);
         c->hum[r + w] = h;
-        c->act[r + w] = h && ta ? h & draw_mask(c, p, ba, act, ta, 0, w, y, z) : 0;
+        c->act[r + w] = h && ta ? h & draw_mask(c, ba, act, ta, NULL, w, y, z) : 0;
       }
     }
 }
@@ -308,12 +325,12 @@ static void shift_row(uint64_t *row, uint32_t words, uint32_t nx, long s) {
     row[W - 1] &= ((uint64_t)1 << (nx % 64)) - 1;
 }
 
-/* The growth rules on every word: out from in. */
-static void grow(const cloud_cells_t *in, cloud_cells_t *out) {
+/* The growth rules on every word of planes [z0, z1): out from in. */
+static void grow(const cloud_cells_t *in, cloud_cells_t *out, uint32_t z0, uint32_t z1) {
   uint32_t W = in->words, ny = in->n[1], nz = in->n[2];
   uint64_t zero[CLOUD_MAX_SIDE / 64] = {0};
   size_t zs = (size_t)W * ny; /* Words per z plane. */
-  for (uint32_t z = 0; z < nz; z++)
+  for (uint32_t z = z0; z < z1; z++)
     for (uint32_t y = 0; y < ny; y++) {
       size_t r = (size_t)z * zs + (size_t)y * W;
       const uint64_t *a = in->act + r;
@@ -335,29 +352,37 @@ static void grow(const cloud_cells_t *in, cloud_cells_t *out) {
     }
 }
 
-/* The Dobashi part of a step: draws on 'out', grown from 'in', then the wind. */
-CLONES static void dobashi(const cloud_cells_t *in, cloud_cells_t *out, const cloud_params_t *p) {
-  uint32_t W = in->words, ny = in->n[1], nz = in->n[2], nx = in->n[0];
+/* The Dobashi part of a step on planes [z0, z1): draws on 'out', grown from 'in', then the
+ * wind. */
+CLONES static void dobashi(const cloud_cells_t *in, cloud_cells_t *out, const cloud_params_t *p,
+                           uint32_t z0, uint32_t z1) {
+  uint32_t W = in->words, ny = in->n[1], nx = in->n[0];
   uint64_t te = cloud_threshold(p->p_ext), th = cloud_threshold(p->p_hum);
   uint64_t ta = cloud_threshold(p->p_act);
   uint32_t be = draw_base(p->seed, in->step, CLOUD_DRAW_EXT);
   uint32_t bh = draw_base(p->seed, in->step, CLOUD_DRAW_HUM);
   uint32_t ba = draw_base(p->seed, in->step, CLOUD_DRAW_ACT);
   int shaped = p->nellipsoids > 0;
+  double srow[CLOUD_MAX_SIDE]; /* The shape along the row, when shaped. */
   double s0 = floor((double)in->step * p->wind), s1 = floor((double)(in->step + 1) * p->wind);
   long shift = (long)(s1 - s0);
-  for (uint32_t z = 0; z < nz; z++)
+  for (uint32_t z = z0; z < z1; z++)
     for (uint32_t y = 0; y < ny; y++) {
       size_t r = ((size_t)z * ny + y) * W;
       int supply = row_in_shape(p, y, z);
+      const double *shape = NULL;
+      if (shaped && supply && (th || ta)) {
+        row_shape(p, nx, y, z, srow);
+        shape = srow;
+      }
       for (uint32_t w = 0; w < W; w++) {
         /* Draws that could change nothing are skipped: no cloud to clear, all humid. */
         if (te && out->cld[r + w])
-          out->cld[r + w] &= ~draw_mask(in, p, be, p->p_ext, te, 0, w, y, z);
+          out->cld[r + w] &= ~draw_mask(in, be, p->p_ext, te, NULL, w, y, z);
         if (supply && th && ~out->hum[r + w] & valid(nx, w))
-          out->hum[r + w] |= draw_mask(in, p, bh, p->p_hum, th, shaped, w, y, z);
+          out->hum[r + w] |= draw_mask(in, bh, p->p_hum, th, shape, w, y, z);
         if (supply && ta)
-          out->act[r + w] |= draw_mask(in, p, ba, p->p_act, ta, shaped, w, y, z);
+          out->act[r + w] |= draw_mask(in, ba, p->p_act, ta, shape, w, y, z);
       }
       if (shift) {
         shift_row(out->hum + r, W, nx, shift);
@@ -367,11 +392,35 @@ CLONES static void dobashi(const cloud_cells_t *in, cloud_cells_t *out, const cl
     }
 }
 
+/* One thread's planes of a step. Every row is stepped on its own (its growth reads 'in' only,
+ * its draws hash its own cells, the wind shifts it along x), so planes split freely. */
+typedef struct step_part {
+  const cloud_cells_t *in;
+  cloud_cells_t *out;
+  const cloud_params_t *p;
+  uint32_t z0, z1;
+} step_part_t;
+
+static void *step_planes(void *arg) {
+  step_part_t *sp = arg;
+  grow(sp->in, sp->out, sp->z0, sp->z1);
+  if (sp->p->rules == CLOUD_DOBASHI)
+    dobashi(sp->in, sp->out, sp->p, sp->z0, sp->z1);
+  return NULL;
+}
+
 void cloud_step(const cloud_cells_t *in, cloud_cells_t *out, const cloud_params_t *p) {
-  grow(in, out);
+  uint32_t nz = in->n[2];
+  /* 64³ and up on a thread per core: a 128³ Dobashi step is 8 ms on one. */
+  int n = par_parts((size_t)in->n[0] * in->n[1] * nz, (size_t)1 << 18);
+  if (nz < (uint32_t)n)
+    n = 1;
+  step_part_t parts[PAR_MAX];
+  for (int i = 0; i < n; i++)
+    parts[i] = (step_part_t){in, out, p, (uint32_t)((uint64_t)nz * i / n),
+                             (uint32_t)((uint64_t)nz * (i + 1) / n)};
+  par_run(step_planes, parts, sizeof *parts, n);
   out->step = in->step + 1;
-  if (p->rules == CLOUD_DOBASHI)
-    dobashi(in, out, p);
 }
 
 /* ---- Density ---- */
@@ -554,8 +603,6 @@ CLONES static void pass_z(const cloud_cells_t *c, const float *restrict w, int K
               w, K, nx, dummy);
 }
 
-#define DENSITY_THREADS 4 /* At most; fewer on fewer cores or small grids. */
-
 /* One thread's share of the density: planes [z0, z1) through the x and y passes, then, after
  * every thread is done with those, rows [y0, y1) through the z pass. */
 typedef struct part {
@@ -584,31 +631,14 @@ static void *part_z(void *arg) {
   return NULL;
 }
 
-/* Runs 'fn' on parts[0 .. n) with n - 1 extra threads; a part whose thread cannot start runs
- * on the caller. */
-static void run_parts(void *(*fn)(void *), part_t *parts, int n) {
-  pthread_t th[DENSITY_THREADS];
-  int started[DENSITY_THREADS] = {0};
-  for (int i = 1; i < n; i++)
-    started[i] = pthread_create(&th[i], NULL, fn, &parts[i]) == 0;
-  fn(&parts[0]);
-  for (int i = 1; i < n; i++) {
-    if (started[i])
-      pthread_join(th[i], NULL);
-    else
-      fn(&parts[i]);
-  }
-}
-
 int cloud_density(const cloud_cells_t *c, double r, float *out) {
   uint32_t nx = c->n[0], ny = c->n[1], nz = c->n[2];
   float w[2 * CLOUD_MAX_RADIUS + 1];
   int K = cloud_kernel(r, w);
   size_t plane = (size_t)nx * ny;
-  long cpus = sysconf(_SC_NPROCESSORS_ONLN);
-  int n = cpus < 1 ? 1 : cpus > DENSITY_THREADS ? DENSITY_THREADS : (int)cpus;
-  /* A thread costs tens of microseconds: not worth it below about 32³. */
-  if ((size_t)plane * nz < 32768 || nz < (uint32_t)n || ny < (uint32_t)n)
+  /* Not worth a thread below about 32³. */
+  int n = par_parts(plane * nz, 32768);
+  if (nz < (uint32_t)n || ny < (uint32_t)n)
     n = 1;
   /* 'b' holds every plane after the x and y passes; each part has a plane 'a' after the x
    * pass and a padded row. */
@@ -622,7 +652,7 @@ int cloud_density(const cloud_cells_t *c, double r, float *out) {
   }
   float *b = mem, *tab = b + BSTRIDE(plane) * nz, *scratch = tab + tablen;
   x_table(w, K, tab);
-  part_t parts[DENSITY_THREADS];
+  part_t parts[PAR_MAX];
   for (int i = 0; i < n; i++) {
     parts[i] = (part_t){.c = c,
                         .w = w,
@@ -639,8 +669,8 @@ int cloud_density(const cloud_cells_t *c, double r, float *out) {
                         .y1 = (uint32_t)((uint64_t)ny * (i + 1) / n)};
     parts[i].row = parts[i].a + plane;
   }
-  run_parts(part_xy, parts, n);
-  run_parts(part_z, parts, n);
+  par_run(part_xy, parts, sizeof *parts, n);
+  par_run(part_z, parts, sizeof *parts, n);
   free(mem);
   free(flags);
   return 0;

@@ -243,6 +243,10 @@ static void test_dobashi(void) {
   p.ellipsoids[0] = (cloud_ellipsoid_t){{10, 8, 30}, {12, 6, 20}};
   p.ellipsoids[1] = (cloud_ellipsoid_t){{25, 3, 50}, {5, 9, 9}};
   compare((uint32_t[3]){33, 17, 65}, &p, 10, 10);
+  /* Big enough to be stepped on several threads (planes split unevenly: 61 of them). */
+  p.ellipsoids[0] = (cloud_ellipsoid_t){{30, 30, 30}, {25, 20, 22}};
+  p.wind = 1.5;
+  compare((uint32_t[3]){70, 65, 61}, &p, 4, 11);
   p.p_ext = 1; /* Everything dies, everything is supplied. */
   p.p_hum = 1;
   p.p_act = 0;
