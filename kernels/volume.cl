@@ -107,16 +107,31 @@ static inline void vol_trilinear(__global const float4 *restrict g, int nx, int 
   /*
    * The packet's rays are neighbouring pixels, so their lanes fall in one voxel or a few: each
    * of those voxels' four x-pairs are loaded once and blended into the lanes inside it, instead
-   * of sixteen per-lane gathers (a vgatherdps apiece) for every lookup. The loop takes the
-   * smallest voxel index of the lanes left until none is.
+   * of sixteen per-lane gathers (a vgatherdps apiece) for every lookup. Each round takes the
+   * voxel of a lane not served yet. Finding that lane is the loop's critical path: with
+   * AVX-512DQ the lanes left are a bit mask (vpmovd2m) and the next is its lowest set bit; else
+   * the corners of the 4 x 4 block first (lane 0, then 15, 3 and 12), then the smallest voxel
+   * left. The mask took a quarter off a cloud frame, the corners a tenth.
    */
-  vi left = (vi)-1;
   vf d00 = 0.0f, d10 = 0.0f, d01 = 0.0f, d11 = 0.0f;
   vf l00 = 0.0f, l10 = 0.0f, l01 = 0.0f, l11 = 0.0f;
-  do {
-    int v0 = vol_min_lane(select((vi)INT_MAX, b, left));
+#ifdef __AVX512DQ__
+  int lane_voxel[VOL_PACKET];
+  vstore16(b, 0, lane_voxel);
+  unsigned left = 0xffffu;
+#else
+  vi left = (vi)-1;
+  int v0 = b.s0;
+#endif
+  for (;;) {
+#ifdef __AVX512DQ__
+    int v0 = lane_voxel[__builtin_ctz(left)];
+    vi in = b == v0;
+    left &= ~(unsigned)__builtin_ia32_cvtd2mask512(in);
+#else
     vi in = b == v0;
     left &= ~in;
+#endif
     float4 q00 = g[v0], q10 = g[v0 + y1], q01 = g[v0 + z1], q11 = g[v0 + y1 + z1];
     d00 = select(d00, mix((vf)q00.x, (vf)q00.y, fx), in);
     l00 = select(l00, mix((vf)q00.z, (vf)q00.w, fx), in);
@@ -126,7 +141,18 @@ static inline void vol_trilinear(__global const float4 *restrict g, int nx, int 
     l01 = select(l01, mix((vf)q01.z, (vf)q01.w, fx), in);
     d11 = select(d11, mix((vf)q11.x, (vf)q11.y, fx), in);
     l11 = select(l11, mix((vf)q11.z, (vf)q11.w, fx), in);
-  } while (any(left));
+#ifdef __AVX512DQ__
+    if (!left)
+      break;
+#else
+    if (!any(left))
+      break;
+    v0 = left.sf   ? b.sf
+         : left.s3 ? b.s3
+         : left.sc ? b.sc
+                   : vol_min_lane(select((vi)INT_MAX, b, left));
+#endif
+  }
   *d = mix(mix(d00, d10, fy), mix(d01, d11, fy), fz);
   *l = mix(mix(l00, l10, fy), mix(l01, l11, fy), fz);
 }
