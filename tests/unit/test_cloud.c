@@ -190,6 +190,7 @@ static void test_kuromiya(void) {
   compare((uint32_t[3]){33, 17, 65}, &p, 10, 2);
   compare((uint32_t[3]){64, 64, 64}, &p, 8, 3);
   compare((uint32_t[3]){129, 3, 9}, &p, 10, 4);
+  compare((uint32_t[3]){130, 129, 126}, &p, 3, 12); /* Stepped on several threads. */
   compare((uint32_t[3]){1, 1, 1}, &p, 3, 5);
 }
 
