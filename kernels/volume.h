@@ -33,8 +33,10 @@
 #define VOL_PACKET_W 4
 #define VOL_PACKET_H 4
 
-/* Shadow-map tests per sample segment (kernels/volume.cl, vol_shadow). */
-#define VOL_SHADOW_TAPS 4
+/* Shadow-map tests per sample segment where it holds a shadow edge, and the first tests that
+ * decide whether it does (kernels/volume.cl, vol_shadow). */
+#define VOL_SHADOW_TAPS 8
+#define VOL_SHADOW_FIRST 2
 
 /* A packet stops marching once every ray lets less than this fraction through. */
 #define VOL_T_MIN (1.0f / 512.0f)
