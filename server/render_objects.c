@@ -576,7 +576,7 @@ int render_pass_objects(renderer_t *r, const render_scene_t *scene, const render
   memset(&f, 0, sizeof f);
   r->pitch = round_up(p->width, render_row_pixels(r));
   /* Whole work-groups of every pass, and whole volume packets (VOL_PACKET_H rows). */
-  size_t rows_unit = r->objects_local[1];
+  size_t rows_unit = r->objects_local[1] ? r->objects_local[1] : 1;
   while (rows_unit % VOL_PACKET_H)
     rows_unit *= 2;
   r->rows = round_up(p->height, rows_unit);
