@@ -7,7 +7,7 @@
 set -euo pipefail
 cd "$(dirname "$0")"
 
-packages=(build-essential cmake pkg-config libuv1-dev libcjson-dev libpng-dev
+packages=(build-essential cmake pkg-config libuv1-dev libcjson-dev libpng-dev zlib1g-dev
           ocl-icd-opencl-dev opencl-headers pocl-opencl-icd python3)
 
 install_missing() {

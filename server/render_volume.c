@@ -30,9 +30,6 @@
 #define NOISE_OCTAVES 4   /* fBm octaves of the value noise. */
 #define NOISE_FADE 0.15   /* Noise volumes fade to zero over this fraction of the box. */
 
-/* Voxels up to which a volume keeps its build scratch between rebuilds (16 MB at 128³). */
-#define VOL_KEEP_SCRATCH ((size_t)1 << 21)
-
 /* One volume's prepared data, keyed by everything it was made from. */
 typedef struct vol_entry {
   int valid;
@@ -45,9 +42,8 @@ typedef struct vol_entry {
   /* The data. */
   float *baked; /* VOLUME_NOISE: the baked density (owned); NULL for grids. */
   uint32_t dims[3];
-  float *packed;          /* The float4 x-pairs the kernel reads (volume.h), dims voxels (owned). */
-  size_t packed_cap;      /* Floats 'packed' holds room for. */
-  float *scratch;         /* Extinction and light while building (owned), two floats a voxel. */
+  float *scratch;         /* Extinction, then light, two floats a voxel (owned): the light is
+                             packed with the density into the device buffer at upload. */
   size_t scratch_cap;     /* Floats 'scratch' holds room for. */
   float tmin[3], tmax[3]; /* Tight box. */
   int empty;              /* No voxel is above zero. */
@@ -425,6 +421,7 @@ static int reserve(float **buf, size_t *cap, size_t n) {
 typedef struct pack_part {
   vol_entry_t *e;
   const float *dens, *lg;
+  float *dst;
   size_t row0, row1;
   int lo[3], hi[3];
 } pack_part_t;
@@ -437,7 +434,7 @@ static void *pack_rows(void *arg) {
     p->lo[k] = INT32_MAX, p->hi[k] = -1;
   for (size_t r = p->row0; r < p->row1; r++) {
     size_t row = r * nx;
-    float *q = p->e->packed + 4 * row;
+    float *q = p->dst + 4 * row;
     int xl = -1, xh = -1;
     for (uint32_t x = 0; x < nx; x++, q += 4) {
       size_t i = row + x, j = x + 1 < nx ? i + 1 : i;
@@ -459,18 +456,16 @@ static void *pack_rows(void *arg) {
 }
 
 /*
- * Interleaves density 'dens' and light 'lg' into e->packed as the kernel reads them (volume.h)
- * and sets the tight box, the part of the box where the interpolated density can be non-zero,
- * and e->empty when there is none. Returns 0, or -1 when out of memory.
+ * Interleaves density 'dens' and light 'lg' into 'dst' (the device buffer, mapped) as the
+ * kernel reads them (volume.h) and sets the tight box, the part of the box where the
+ * interpolated density can be non-zero, and e->empty when there is none.
  */
-static int pack(vol_entry_t *e, const float *dens, const float *lg) {
+static void pack(vol_entry_t *e, const float *dens, const float *lg, float *dst) {
   size_t n = (size_t)e->dims[0] * e->dims[1] * e->dims[2], rows = n / e->dims[0];
-  if (reserve(&e->packed, &e->packed_cap, 4 * n) != 0)
-    return -1;
   int parts = par_parts(rows, PACK_THREAD_MIN);
   pack_part_t part[PAR_MAX];
   for (int i = 0; i < parts; i++)
-    part[i] = (pack_part_t){e, dens, lg, rows * i / parts, rows * (i + 1) / parts, {0}, {0}};
+    part[i] = (pack_part_t){e, dens, lg, dst, rows * i / parts, rows * (i + 1) / parts, {0}, {0}};
   par_run(pack_rows, part, sizeof *part, parts);
   for (int i = 1; i < parts; i++)
     for (int k = 0; k < 3; k++) {
@@ -485,24 +480,21 @@ static int pack(vol_entry_t *e, const float *dens, const float *lg) {
     e->tmin[k] = (float)(a < e->min[k] ? e->min[k] : a);
     e->tmax[k] = (float)(b > e->max[k] ? e->max[k] : b);
   }
-  return 0;
 }
 
 static void entry_clear(vol_entry_t *e) {
   grid_drop(e->grid);
   free(e->baked);
-  free(e->packed);
   free(e->scratch);
   memset(e, 0, sizeof *e);
 }
 
 /* Empties 'e' for a rebuild, keeping its allocations (see reserve). */
 static void entry_reset(vol_entry_t *e) {
-  float *packed = e->packed, *scratch = e->scratch;
-  size_t packed_cap = e->packed_cap, scratch_cap = e->scratch_cap;
-  e->packed = e->scratch = NULL;
+  float *scratch = e->scratch;
+  size_t scratch_cap = e->scratch_cap;
+  e->scratch = NULL;
   entry_clear(e);
-  e->packed = packed, e->packed_cap = packed_cap;
   e->scratch = scratch, e->scratch_cap = scratch_cap;
 }
 
@@ -545,16 +537,8 @@ static int entry_build(vol_entry_t *e, const rvolume_t *v, float sigma, const fl
     return 0;
   }
   if (reserve(&e->scratch, &e->scratch_cap, 2 * n) != 0 ||
-      light_grid(e, dens, sigma, l, e->scratch, e->scratch + n) != 0 ||
-      pack(e, dens, e->scratch + n) != 0)
+      light_grid(e, dens, sigma, l, e->scratch, e->scratch + n) != 0)
     return -1;
-  /* The scratch of a grid that changes every step is kept; that of a large one is not. */
-  if (n > VOL_KEEP_SCRATCH) {
-    free(e->scratch);
-    e->scratch = NULL, e->scratch_cap = 0;
-  }
-  free(e->baked);
-  e->baked = NULL;
   e->valid = 1;
   return 0;
 }
@@ -820,13 +804,20 @@ int render_pass_volumes(renderer_t *r, const render_scene_t *scene, unsigned lay
   cl_int cr = CL_SUCCESS;
   if (changed) {
     vs->data_floats = 0;
+    /* Each grid is packed straight into the mapped buffer (on a CPU device, the buffer's own
+     * memory): no copy of 16 bytes a voxel on the host, and none on upload. */
     for (int i = 0; i < n && cr == CL_SUCCESS; i++) {
       vol_entry_t *e = &vs->ents[i];
       if (e->empty)
         continue;
       size_t nd = (size_t)e->dims[0] * e->dims[1] * e->dims[2];
-      cr = clEnqueueWriteBuffer(r->dev.queue, vs->data, CL_FALSE, e->off * 4 * sizeof(float),
-                                nd * 4 * sizeof(float), e->packed, 0, NULL, NULL);
+      float *dst = clEnqueueMapBuffer(r->dev.queue, vs->data, CL_TRUE,
+                                      CL_MAP_WRITE_INVALIDATE_REGION, e->off * 4 * sizeof(float),
+                                      nd * 4 * sizeof(float), 0, NULL, NULL, &cr);
+      if (cr != CL_SUCCESS)
+        break;
+      pack(e, e->grid ? e->grid->data : e->baked, e->scratch + nd, dst);
+      cr = clEnqueueUnmapMemObject(r->dev.queue, vs->data, dst, 0, NULL, NULL);
     }
     if (cr == CL_SUCCESS)
       vs->data_floats = total;
