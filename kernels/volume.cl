@@ -28,7 +28,7 @@
  *
  * A work-item shades a 4 x 4 block of pixels (VOL_PACKET_W x VOL_PACKET_H) in the lanes of a
  * float16, so that PoCL's code is vector code filling AVX-512's registers. Sixteen lanes rather
- * than the objects kernel's eight took a third off the pass: the loads per pixel stay, the
+ * than eight took a third off the pass: the loads per pixel stay, the
  * arithmetic and the spills of the values that live across the sample loop are shared by twice
  * the pixels. A square block rather than sixteen pixels of a row keeps the lanes' samples close
  * together, so that they fall in fewer voxels of a grid, each of which is loaded once for the

@@ -22,7 +22,7 @@
  *
  * Each work-item shades a packet of WAVES_PACKET (16) horizontally adjacent pixels in the lanes
  * of a float16, so that PoCL's code is vector code whatever it does with the work-item loop
- * and fills AVX-512's registers: twice the objects kernel's 8 pixels took about 30% off the pass,
+ * and fills AVX-512's registers: twice the 8 pixels it had at first took about 30% off the pass,
  * which is bound by the number of instructions more than by any one unit. The host lists, for
  * each work-group, the waves that may meet one of its rays (cull_waves in render_waves.c); a
  * packet integrates only those, and skips one whose capsule none of its rays enters. When the

@@ -23,8 +23,8 @@
  * (common.h), and their work-groups cover the same 32x8. The per-pixel buffers are padded to
  * whole work-groups of every pass.
  */
-#define PACKET 8
-#define OBJECTS_LX 4
+#define PACKET 16
+#define OBJECTS_LX 2
 #define OBJECTS_LY 8
 #define TONEMAP_LX (PACKET * OBJECTS_LX / TONEMAP_PACKET)
 #define TONEMAP_LY 8
