@@ -841,6 +841,41 @@ static int prepare(cJSON *doc, scene_error_t *err) {
  * fluid.initial (or the first document) replaces the particles by its blocks; a cloud newly
  * enabled, or with a new grid, seed or init, gets freshly seeded cells.
  */
+/*
+ * Looks up every mesh and volume file of the validated 'doc' once before the costlier parts of
+ * a commit (the cloud's seeding steps, the particles): a file that must first be read off the
+ * loop thread (a deferral, scene_files.h) then stops the commit before that work is done, not
+ * after it, so a change that is retried once its file is read does that work once. Returns 0,
+ * or -1 with 'err' set.
+ */
+static int files_ready(const cJSON *doc, scene_error_t *err) {
+  int i = 0;
+  for (const cJSON *o = get(doc, "objects")->child; o; o = o->next, i++) {
+    if (shape_of(get(o, "shape")->valuestring) != SHAPE_MESH)
+      continue;
+    char p[64];
+    snprintf(p, sizeof p, "objects.%d.file", i);
+    mesh_t *m = scene_mesh_get(get(o, "file")->valuestring, p, err);
+    if (!m)
+      return -1;
+    mesh_unref(m);
+  }
+  i = 0;
+  for (const cJSON *v = get(doc, "volumes")->child; v; v = v->next, i++) {
+    if (strcmp(get(v, "source")->valuestring, "file") != 0)
+      continue;
+    double d[3];
+    vec3d(get(v, "dims"), d);
+    uint32_t dims[3] = {(uint32_t)d[0], (uint32_t)d[1], (uint32_t)d[2]};
+    density_grid_t *g = scene_grid_get(get(v, "file")->valuestring, i, dims,
+                                       strcmp(get(v, "format")->valuestring, "u8") == 0, err);
+    if (!g)
+      return -1;
+    density_grid_unref(g);
+  }
+  return 0;
+}
+
 static int commit(scene_t *s, cJSON *doc, scene_error_t *err) {
   particles_t *particles = s->particles;
   int reseed = 0;
@@ -848,7 +883,8 @@ static int commit(scene_t *s, cJSON *doc, scene_error_t *err) {
   density_grid_t *density = NULL;
   int seeded = 0;
   render_scene_t *rs = NULL;
-  if (prepare(doc, err) != 0 || cloud_prepare(s, doc, &cells, &density, &seeded, err) != 0)
+  if (prepare(doc, err) != 0 || files_ready(doc, err) != 0 ||
+      cloud_prepare(s, doc, &cells, &density, &seeded, err) != 0)
     goto fail;
   const cJSON *init = get(get(doc, "fluid"), "initial");
   if (!s->doc || !cJSON_Compare(init, get(get(s->doc, "fluid"), "initial"), 1)) {
