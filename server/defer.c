@@ -22,8 +22,6 @@ typedef struct load_job {
   call_t *call;
   scene_file_t file;
   scene_pin_t pin;
-  scene_error_t err;
-  int rc;
 } load_job_t;
 
 void defer_arm(call_t *call, scene_file_t *want) {
@@ -76,7 +74,8 @@ void defer_release(call_t *call) {
 
 static void load_work(uv_work_t *req) {
   load_job_t *j = req->data;
-  j->rc = scene_file_load(&j->file, &j->pin, &j->err);
+  /* A fault is cached with the file, where the call's retry finds it. */
+  scene_file_load(&j->file, &j->pin, NULL);
 }
 
 static void load_done(uv_work_t *req, int status) {
@@ -88,12 +87,11 @@ static void load_done(uv_work_t *req, int status) {
     scene_pin_release(&j->pin);
     call_error(call, PROTO_E_INTERNAL, j->file.path, "internal error: %s: \"%s\" was not read",
                j->file.path, j->file.file);
-  } else if (j->rc != 0) {
-    call_error(call, j->err.code, j->err.path, "%s: %s", proto_err_message(j->err.code),
-               j->err.message);
   } else if (keep(call, j->file.real, &j->pin) != 0) {
     call_error(call, PROTO_E_INTERNAL, j->file.path, "internal error: out of memory");
   } else {
+    /* Read or refused: either way the call runs again from the start, and finds the contents
+     * or the fault in the cache (answering it as it answers any bad field). */
     call->method->handler(call);
   }
   free(j);

@@ -2,9 +2,10 @@
  * Requests that wait for files. A scene change that names a mesh or volume file the cache
  * lacks (scene_files.h) is not answered from a file read on the loop thread: the file is read
  * on libuv's thread pool while the connection is held (its later requests wait, so they see
- * the change), and then the request runs again from the start, finding the file cached. The
- * files read stay referenced by the call until it is answered, so a change naming several new
- * files reads each once.
+ * the change), and then the request runs again from the start, finding the file cached, or
+ * the fault that refused it (which the request then answers in its own words). The files read
+ * stay referenced by the call until it is answered, so a change naming several new files reads
+ * each once.
  *
  *   scene_file_t want;
  *   defer_arm(call, &want);

@@ -29,6 +29,10 @@ typedef struct file_entry {
   int u8;
   mesh_t *mesh;
   density_grid_t *data;
+  /* A read that failed, kept only until the next prune: the request that read the file off
+   * the loop thread runs again and answers with this error in its own words. */
+  int failed;
+  scene_error_t fault;
   struct file_entry *next;
 } file_entry_t;
 
@@ -65,6 +69,8 @@ static void entry_free(file_entry_t *e) {
 }
 
 static int entry_refs(const file_entry_t *e) {
+  if (e->failed)
+    return 0;
   return e->grid ? atomic_load(&e->data->refs) : atomic_load(&e->mesh->refs);
 }
 
@@ -94,17 +100,23 @@ static int same_stat(const file_entry_t *e, const struct stat *st) {
          e->mtime.tv_sec == st->st_mtim.tv_sec && e->mtime.tv_nsec == st->st_mtim.tv_nsec;
 }
 
-/* Takes a reference to the cached contents of 'f' into 'pin'; 1 when cached, else 0. An entry
- * for the same file whose stat changed is dropped: snapshots keep the old contents, new ones
- * read the new file. */
-static int lookup(const scene_file_t *f, scene_pin_t *pin) {
+/* Takes a reference to the cached contents of 'f' into 'pin': 1 when cached, 0 when not, -1
+ * with 'err' set when the read of this very file failed just before, for the field 'f' names.
+ * An entry for the same file whose stat changed is dropped: snapshots keep the old contents,
+ * new ones read the new file. */
+static int lookup(const scene_file_t *f, scene_pin_t *pin, scene_error_t *err) {
   int hit = 0;
   pthread_mutex_lock(&g_lock);
   for (file_entry_t **pp = &g_files; *pp; pp = &(*pp)->next) {
     file_entry_t *e = *pp;
     if (!same_key(e, f))
       continue;
-    if (same_stat(e, &f->st)) {
+    if (same_stat(e, &f->st) && e->failed) {
+      if (strcmp(e->fault.path, f->path) == 0 && err) {
+        *err = e->fault;
+        hit = -1;
+      }
+    } else if (same_stat(e, &f->st)) {
       pin->mesh = e->mesh ? mesh_ref(e->mesh) : NULL;
       pin->grid = e->data ? density_grid_ref(e->data) : NULL;
       hit = 1;
@@ -120,10 +132,10 @@ static int lookup(const scene_file_t *f, scene_pin_t *pin) {
 
 /* Caches what 'pin' holds as the contents of 'f', unless another thread cached the same file
  * meanwhile: then 'pin' is switched to that copy. Out of memory leaves it uncached. */
-static void insert(const scene_file_t *f, scene_pin_t *pin) {
+static void insert(const scene_file_t *f, scene_pin_t *pin, const scene_error_t *fault) {
   pthread_mutex_lock(&g_lock);
   for (file_entry_t *e = g_files; e; e = e->next)
-    if (same_key(e, f) && same_stat(e, &f->st)) {
+    if (same_key(e, f) && same_stat(e, &f->st) && !e->failed && !fault) {
       scene_pin_release(pin);
       pin->mesh = e->mesh ? mesh_ref(e->mesh) : NULL;
       pin->grid = e->data ? density_grid_ref(e->data) : NULL;
@@ -141,6 +153,10 @@ static void insert(const scene_file_t *f, scene_pin_t *pin) {
     e->u8 = f->u8;
     e->mesh = pin->mesh ? mesh_ref(pin->mesh) : NULL;
     e->data = pin->grid ? density_grid_ref(pin->grid) : NULL;
+    if (fault) {
+      e->failed = 1;
+      e->fault = *fault;
+    }
     e->next = g_files;
     g_files = e;
   } else {
@@ -223,23 +239,25 @@ static density_grid_t *grid_read(const scene_file_t *f, scene_error_t *err) {
 }
 
 int scene_file_load(const scene_file_t *f, scene_pin_t *pin, scene_error_t *err) {
+  scene_error_t local;
+  if (!err)
+    err = &local;
   pin->mesh = NULL;
   pin->grid = NULL;
+  int ok;
   if (f->grid) {
-    pin->grid = grid_read(f, err);
-    if (!pin->grid)
-      return -1;
+    ok = (pin->grid = grid_read(f, err)) != NULL;
   } else {
     char why[256] = "";
-    pin->mesh = mesh_load_obj(f->real, why, sizeof why);
-    if (!pin->mesh) {
+    ok = (pin->mesh = mesh_load_obj(f->real, why, sizeof why)) != NULL;
+    if (!ok) {
       scrub_message(why, sizeof why, f->real, f->file);
-      return fail(err, PROTO_E_INVALID_PARAMS, f->path, "%s: %s", f->path,
-                  why[0] ? why : "cannot load the mesh");
+      fail(err, PROTO_E_INVALID_PARAMS, f->path, "%s: %s", f->path,
+           why[0] ? why : "cannot load the mesh");
     }
   }
-  insert(f, pin);
-  return 0;
+  insert(f, pin, ok ? NULL : err);
+  return ok ? 0 : -1;
 }
 
 /* Resolves the client's 'file' for field 'path' into 'f' (a regular file under the data
@@ -258,8 +276,9 @@ static int resolve(const char *file, const char *path, scene_file_t *f, scene_er
 
 /* The contents of 'f' into 'pin': cached, read now, or (deferral armed) recorded. */
 static int get(scene_file_t *f, scene_pin_t *pin, scene_error_t *err) {
-  if (lookup(f, pin))
-    return 0;
+  int cached = lookup(f, pin, err);
+  if (cached)
+    return cached > 0 ? 0 : -1;
   if (g_want) {
     *g_want = *f;
     return fail(err, SCENE_DEFERRED, f->path, "%s: \"%.64s\" is being read", f->path, f->file);

@@ -48,7 +48,8 @@ typedef struct scene_pin {
 void scene_files_defer(scene_file_t *want);
 
 /* Reads 'f' into the cache, with a reference in 'pin'. Any thread. Returns 0, or -1 with 'err'
- * naming the field and the fault (wrong size, bad data, unreadable). */
+ * naming the field and the fault (wrong size, bad data, unreadable); the fault is then cached
+ * until the next prune, so a lookup of the same file for the same field fails with it at once. */
 int scene_file_load(const scene_file_t *f, scene_pin_t *pin, scene_error_t *err);
 void scene_pin_release(scene_pin_t *pin);
 

@@ -168,6 +168,27 @@ def bad_files_refused(s):
 
 
 @T
+def snapshot_with_a_bad_file(s):
+    c = s.srv.connect()
+    c.ok("scene.create", {"name": "sb"})
+    write(s, "later_bad.obj", TRI)
+    c.ok("scene.set", {"scene": "sb", "patch": {"objects": [mesh("later_bad.obj")]}})
+    c.ok("scene.save", {"scene": "sb", "file": "sb.snap"})
+    c.ok("scene.set", {"scene": "sb", "patch": {"objects": [{"shape": "box"}]}})
+    before = c.ok("scene.get", {"scene": "sb"})[0]
+    # The mesh the snapshot names goes bad (a big file, read off the loop thread).
+    path = write(s, "later_bad.obj", BIG_VERTS + b"f 1 2 99999999\n")
+    t = time.time() + 100
+    os.utime(path, (t, t))
+    e = expect_error(s, c, "scene.load", {"scene": "sb", "file": "sb.snap"}, E_PARAMS,
+                     path="objects.0.file", what="a snapshot naming a bad mesh").get("error")
+    if e:
+        s.check('snapshot "sb.snap"' in e.get("message", ""),
+                "scene.load's error names the snapshot, as for any bad field", e.get("message"))
+    s.eq(c.ok("scene.get", {"scene": "sb"})[0], before, "the scene is as it was")
+
+
+@T
 def several_new_files(s):
     c = s.srv.connect()
     c.ok("scene.create", {"name": "m"})
