@@ -158,6 +158,28 @@ typedef struct vfx_fluid {
  * plus the same amount, so rounding in the hit point cannot make a surface shadow itself. */
 #define SHADOW_BIAS 2e-4f
 
+/* The smallest and largest of the sixteen lanes of a packet's values (the float16 kernels). */
+static inline int lanes_min(int16 v) {
+  int8 a = min(v.lo, v.hi);
+  int4 b = min(a.lo, a.hi);
+  int2 c = min(b.lo, b.hi);
+  return min(c.x, c.y);
+}
+
+static inline int lanes_max(int16 v) {
+  int8 a = max(v.lo, v.hi);
+  int4 b = max(a.lo, a.hi);
+  int2 c = max(b.lo, b.hi);
+  return max(c.x, c.y);
+}
+
+static inline float lanes_fmin(float16 v) {
+  float8 a = fmin(v.lo, v.hi);
+  float4 b = fmin(a.lo, a.hi);
+  float2 c = fmin(b.lo, b.hi);
+  return fmin(c.x, c.y);
+}
+
 #endif
 
 #endif

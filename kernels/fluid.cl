@@ -45,28 +45,6 @@ static inline pf fluid_rsqrt(pf x) {
   return 1.0f / sqrt(x);
 }
 
-/* The smallest and largest lane of v. */
-static inline int fluid_hmin(pi v) {
-  int8 a = min(v.lo, v.hi);
-  int4 b = min(a.lo, a.hi);
-  int2 c = min(b.lo, b.hi);
-  return min(c.x, c.y);
-}
-
-static inline float fluid_hminf(pf v) {
-  float8 a = fmin(v.lo, v.hi);
-  float4 b = fmin(a.lo, a.hi);
-  float2 c = fmin(b.lo, b.hi);
-  return fmin(c.x, c.y);
-}
-
-static inline int fluid_hmax(pi v) {
-  int8 a = max(v.lo, v.hi);
-  int4 b = max(a.lo, a.hi);
-  int2 c = max(b.lo, b.hi);
-  return max(c.x, c.y);
-}
-
 /*
  * Bounding the field ahead along the ray. Let x be a point of the ray e + t d (|d| = 1) and
  * r_j, sigma_j = 1 - r_j / h the distance to particle j and its unclamped s_j there. Along the
@@ -303,10 +281,10 @@ __kernel void fluid(vfx_frame_t f, vfx_fluid_t fl, __global const int *restrict 
       break;
 
     /* One round: the rays whose pending sample uses the list of the ray furthest behind. */
-    float tmin = fluid_hminf(select((pf)INFINITY, ts, busy));
-    int key = fluid_hmin(select((pi)INT_MAX, first, busy & (ts == tmin)));
+    float tmin = lanes_fmin(select((pf)INFINITY, ts, busy));
+    int key = lanes_min(select((pi)INT_MAX, first, busy & (ts == tmin)));
     pi g = busy & (first == key);
-    int m = fluid_hmax(select((pi)0, lm, g));
+    int m = lanes_max(select((pi)0, lm, g));
     pi gm = g & (mode == FL_MARCH), gl = g & (mode == FL_LOOK), gr = g & (mode == FL_REFINE);
     pf x = ex + ts * dx, y = ey + ts * dy, z = ez + ts * dz;
     pf l3 = clamp((tb - ts) * fl.inv_h, 0.0f, FLUID_REACH);
@@ -426,9 +404,9 @@ __kernel void fluid(vfx_frame_t f, vfx_fluid_t fl, __global const int *restrict 
   pf gx = 0.0f, gy = 0.0f, gz = 0.0f;
   pi todo = found;
   while (any(todo)) {
-    int key = fluid_hmin(select((pi)INT_MAX, first, todo));
+    int key = lanes_min(select((pi)INT_MAX, first, todo));
     pi g = todo & (first == key);
-    int m = fluid_hmax(select((pi)0, lm, g));
+    int m = lanes_max(select((pi)0, lm, g));
     pf ax = 0.0f, ay = 0.0f, az = 0.0f;
     __global const float *p = pos + 3 * key;
     for (int i = 0; i < m; i++, p += 3) {

@@ -22,13 +22,6 @@ typedef int16 intv;
   ((floatv)(0.5f, 1.5f, 2.5f, 3.5f, 4.5f, 5.5f, 6.5f, 7.5f, 8.5f, 9.5f, 10.5f, 11.5f, 12.5f,       \
             13.5f, 14.5f, 15.5f))
 
-static inline float hmin(floatv v) {
-  float8 c = fmin(v.lo, v.hi);
-  float4 a = fmin(c.lo, c.hi);
-  float2 b = fmin(a.lo, a.hi);
-  return fmin(b.x, b.y);
-}
-
 /*
  * A surface point of an object counts from distance 'tmin' on: of the entry and exit points,
  * the first that is not nearer than 'tmin' is the hit, so a camera inside a box, or one whose
@@ -107,7 +100,7 @@ static void mesh_closest(__global const float *restrict nodes, __global const fl
         floatv t0z = (c[2] - oz) * iz, t1z = (c[5] - oz) * iz;
         floatv lo = fmax(fmax(fmin(t0x, t1x), fmin(t0y, t1y)), fmax(fmin(t0z, t1z), tmin));
         floatv hi = fmin(fmin(fmax(t0x, t1x), fmax(t0y, t1y)), fmin(fmax(t0z, t1z), *best));
-        near[k] = hmin(select((floatv)INFINITY, lo, lo <= hi));
+        near[k] = lanes_fmin(select((floatv)INFINITY, lo, lo <= hi));
       }
       int first_child = near[1] < near[0];
       float t_first = near[first_child], t_second = near[!first_child];

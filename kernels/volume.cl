@@ -57,14 +57,6 @@ typedef int16 vi;
   ((vf)(p[(i).s0], p[(i).s1], p[(i).s2], p[(i).s3], p[(i).s4], p[(i).s5], p[(i).s6], p[(i).s7],    \
         p[(i).s8], p[(i).s9], p[(i).sa], p[(i).sb], p[(i).sc], p[(i).sd], p[(i).se], p[(i).sf]))
 
-/* The smallest of the sixteen lanes of 'v'. */
-static inline int vol_min_lane(vi v) {
-  int8 a = min(v.lo, v.hi);
-  int4 b = min(a.lo, a.hi);
-  int2 c = min(b.lo, b.hi);
-  return min(c.x, c.y);
-}
-
 /*
  * exp(-x) for finite x >= 0, to about 2e-7 relative, in vector code. The builtin exp became a
  * call into the C library per lane, and a call inside the sample loop makes the compiler spill
@@ -148,10 +140,7 @@ static inline void vol_trilinear(__global const float4 *restrict g, int nx, int 
 #else
     if (!any(left))
       break;
-    v0 = left.sf   ? b.sf
-         : left.s3 ? b.s3
-         : left.sc ? b.sc
-                   : vol_min_lane(select((vi)INT_MAX, b, left));
+    v0 = left.sf ? b.sf : left.s3 ? b.s3 : left.sc ? b.sc : lanes_min(select((vi)INT_MAX, b, left));
 #endif
   }
   *d = mix(mix(d00, d10, fy), mix(d01, d11, fy), fz);
