@@ -129,6 +129,22 @@ static int check_volumes(const cJSON *doc, scene_error_t *err) {
   return 0;
 }
 
+/* The grid of file volume 'v' (volumes['i']): a counted reference, or NULL with 'err' set. */
+static density_grid_t *volume_grid(const cJSON *v, int i, scene_error_t *err) {
+  double d[3];
+  vec3d(get(v, "dims"), d);
+  uint32_t dims[3] = {(uint32_t)d[0], (uint32_t)d[1], (uint32_t)d[2]};
+  return scene_grid_get(get(v, "file")->valuestring, i, dims,
+                        strcmp(get(v, "format")->valuestring, "u8") == 0, err);
+}
+
+/* The mesh of mesh object 'o' (objects['i']): a counted reference, or NULL with 'err' set. */
+static mesh_t *object_mesh(const cJSON *o, int i, scene_error_t *err) {
+  char p[64];
+  snprintf(p, sizeof p, "objects.%d.file", i);
+  return scene_mesh_get(get(o, "file")->valuestring, p, err);
+}
+
 /* Compiles volumes[] into 'rs', loading grid files. Returns 0, or -1 with 'err' set (the
  * grids taken so far belong to rs and go with it). */
 static int compile_volumes(const cJSON *doc, render_scene_t *rs, scene_error_t *err) {
@@ -153,12 +169,8 @@ static int compile_volumes(const cJSON *doc, render_scene_t *rs, scene_error_t *
     rv->noise_scale = (float)get(v, "noise_scale")->valuedouble;
     rs->nvolumes = i + 1;
     if (strcmp(get(v, "source")->valuestring, "file") == 0) {
-      double d[3];
-      vec3d(get(v, "dims"), d);
-      uint32_t dims[3] = {(uint32_t)d[0], (uint32_t)d[1], (uint32_t)d[2]};
       rv->source = VOLUME_GRID;
-      rv->grid = scene_grid_get(get(v, "file")->valuestring, i, dims,
-                                strcmp(get(v, "format")->valuestring, "u8") == 0, err);
+      rv->grid = volume_grid(v, i, err);
       if (!rv->grid)
         return -1;
     } else {
@@ -794,9 +806,7 @@ static render_scene_t *compile(const cJSON *doc, particles_t *particles, density
     /* Counted as it goes, so that unref frees exactly the meshes taken so far on failure. */
     rs->nobjects = i + 1;
     if (ro->shape == SHAPE_MESH) {
-      char p[64];
-      snprintf(p, sizeof p, "objects.%d.file", i);
-      ro->mesh = scene_mesh_get(get(o, "file")->valuestring, p, err);
+      ro->mesh = object_mesh(o, i, err);
       if (!ro->mesh) {
         render_scene_unref(rs);
         return NULL;
@@ -853,9 +863,7 @@ static int files_ready(const cJSON *doc, scene_error_t *err) {
   for (const cJSON *o = get(doc, "objects")->child; o; o = o->next, i++) {
     if (shape_of(get(o, "shape")->valuestring) != SHAPE_MESH)
       continue;
-    char p[64];
-    snprintf(p, sizeof p, "objects.%d.file", i);
-    mesh_t *m = scene_mesh_get(get(o, "file")->valuestring, p, err);
+    mesh_t *m = object_mesh(o, i, err);
     if (!m)
       return -1;
     mesh_unref(m);
@@ -864,11 +872,7 @@ static int files_ready(const cJSON *doc, scene_error_t *err) {
   for (const cJSON *v = get(doc, "volumes")->child; v; v = v->next, i++) {
     if (strcmp(get(v, "source")->valuestring, "file") != 0)
       continue;
-    double d[3];
-    vec3d(get(v, "dims"), d);
-    uint32_t dims[3] = {(uint32_t)d[0], (uint32_t)d[1], (uint32_t)d[2]};
-    density_grid_t *g = scene_grid_get(get(v, "file")->valuestring, i, dims,
-                                       strcmp(get(v, "format")->valuestring, "u8") == 0, err);
+    density_grid_t *g = volume_grid(v, i, err);
     if (!g)
       return -1;
     density_grid_unref(g);
