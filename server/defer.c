@@ -1,6 +1,6 @@
 /*
- * Requests that wait for files (defer.h): the thread-pool read, the hold on the connection,
- * and the files kept for the call.
+ * Requests that wait for files or cloud cells (defer.h): the thread-pool work, the hold on the
+ * connection, and what is kept for the call.
  */
 #include "defer.h"
 
@@ -9,12 +9,15 @@
 
 #include "dispatch.h"
 
-/* The files read for one call, referenced until it is answered. */
+/* The files read and the cells made for one call, referenced until it is answered. */
 struct call_files {
   int n;
   scene_pin_t *pins;
-  char **paths;     /* Their resolved paths. */
-  int inline_reads; /* Read any further file on the spot (one changed while waiting). */
+  char **paths;           /* Their resolved paths. */
+  int inline_reads;       /* Read any further file on the spot (one changed while waiting). */
+  cloud_seed_pin_t *seed; /* Cells made for the call, or NULL. */
+  int inline_seed;        /* Seed any further cells on the spot (the settings changed while
+                             waiting: another client changed the scene). */
 };
 
 typedef struct load_job {
@@ -24,8 +27,24 @@ typedef struct load_job {
   scene_pin_t pin;
 } load_job_t;
 
-void defer_arm(call_t *call, scene_file_t *want) {
-  scene_files_defer(call->files && call->files->inline_reads ? NULL : want);
+typedef struct seed_job {
+  uv_work_t req;
+  call_t *call;
+  scene_cloud_t cloud;
+  cloud_seed_pin_t *pin;
+  int rc;
+} seed_job_t;
+
+void defer_arm(call_t *call, defer_want_t *want) {
+  struct call_files *f = call->files;
+  scene_files_defer(f && f->inline_reads ? NULL : &want->file);
+  cloud_seed_defer(f && f->inline_seed ? NULL : &want->cloud);
+}
+
+static struct call_files *files_of(call_t *call) {
+  if (!call->files)
+    call->files = calloc(1, sizeof *call->files);
+  return call->files;
 }
 
 static int read_before(const call_t *call, const char *real) {
@@ -37,8 +56,8 @@ static int read_before(const call_t *call, const char *real) {
 
 /* Keeps 'pin' for the call (taken). Returns 0, or -1 when out of memory (pin released). */
 static int keep(call_t *call, const char *real, scene_pin_t *pin) {
-  struct call_files *f = call->files;
-  if (!f && !(f = call->files = calloc(1, sizeof *f))) {
+  struct call_files *f = files_of(call);
+  if (!f) {
     scene_pin_release(pin);
     return -1;
   }
@@ -68,6 +87,7 @@ void defer_release(call_t *call) {
   }
   free(f->pins);
   free(f->paths);
+  cloud_seed_unpin(f->seed);
   free(f);
   call->files = NULL;
 }
@@ -99,10 +119,68 @@ static void load_done(uv_work_t *req, int status) {
   conn_unref(c);
 }
 
-int defer_check(call_t *call, int rc, const scene_error_t *err, const scene_file_t *want) {
+static void seed_work(uv_work_t *req) {
+  seed_job_t *j = req->data;
+  j->rc = cloud_seed_make(&j->cloud, &j->pin);
+}
+
+static void seed_done(uv_work_t *req, int status) {
+  seed_job_t *j = req->data;
+  call_t *call = j->call;
+  conn_t *c = call->conn;
+  c->refs++; /* As in load_done. */
+  struct call_files *f = status == 0 && j->rc == 0 ? files_of(call) : NULL;
+  if (!f) {
+    cloud_seed_unpin(j->pin);
+    call_error(call, PROTO_E_INTERNAL, "cloud",
+               "internal error: out of memory for a %ux%ux%u cloud", j->cloud.n[0], j->cloud.n[1],
+               j->cloud.n[2]);
+  } else {
+    f->seed = j->pin;
+    call->method->handler(call);
+  }
+  free(j);
+  conn_release(c);
+  conn_unref(c);
+}
+
+/* Queues the seeding 'want' for 'call' (defer_check). */
+static void queue_seed(call_t *call, const scene_cloud_t *want) {
+  if (call->files && call->files->seed) {
+    /* Seeded for this call already, with other settings: the scene changed meanwhile. Seed on
+     * the spot rather than chase settings that keep changing. */
+    call->files->inline_seed = 1;
+    call->method->handler(call);
+    return;
+  }
+  seed_job_t *j = calloc(1, sizeof *j);
+  if (!j) {
+    call_error(call, PROTO_E_INTERNAL, "cloud", "internal error: out of memory");
+    return;
+  }
+  j->req.data = j;
+  j->call = call;
+  j->cloud = *want;
+  if (uv_queue_work(call->srv->loop, &j->req, seed_work, seed_done) != 0) {
+    free(j);
+    call_error(call, PROTO_E_INTERNAL, "cloud", "internal error: cannot queue the seeding");
+    return;
+  }
+  conn_hold(call->conn);
+}
+
+int defer_check(call_t *call, int rc, const scene_error_t *err, defer_want_t *wanted) {
   scene_files_defer(NULL);
-  if (rc == 0 || err->code != SCENE_DEFERRED)
+  cloud_seed_defer(NULL);
+  if (rc == 0)
     return 0;
+  if (err->code == SCENE_DEFERRED_SEED) {
+    queue_seed(call, &wanted->cloud);
+    return 1;
+  }
+  if (err->code != SCENE_DEFERRED)
+    return 0;
+  const scene_file_t *want = &wanted->file;
   if (read_before(call, want->real)) {
     /* Read for this call already, and changed on disk since: read it on the spot, rather than
      * chase a file that keeps changing. */

@@ -59,7 +59,7 @@ static void scene_create_m(call_t *call) {
     return;
   }
   scene_error_t err = {0};
-  scene_file_t want;
+  defer_want_t want;
   defer_arm(call, &want);
   scene_entry_t *e = server_add_scene(call->srv, name, preset, &err);
   if (defer_check(call, e ? 0 : -1, &err, &want))
@@ -110,7 +110,7 @@ static void scene_set_m(call_t *call) {
   const cJSON *path = cJSON_GetObjectItem(call->params, "path");
   const cJSON *value = cJSON_GetObjectItem(call->params, "value");
   scene_error_t err = {0};
-  scene_file_t want;
+  defer_want_t want;
   int rc;
   if (patch && !path && !value) {
     if (!cJSON_IsObject(patch)) {

@@ -19,6 +19,7 @@
 #include <string.h>
 
 #include "anim.h"
+#include "cloud_seed.h"
 #include "scene_files.h"
 #include "proto.h"
 
@@ -27,8 +28,9 @@
 #define EYE_TARGET_EPS 1e-6
 /* Smallest sine of the angle between camera.up and the view direction (about 0.06 degrees). */
 #define UP_PARALLEL_EPS 1e-3
-/* Most cell-steps cloud.init.steps may take (grid cells x steps): 64^3 x 128, about 0.1 s. */
-#define CLOUD_INIT_STEP_CELLS (1 << 25)
+/* Most cell-steps cloud.init.steps may take (grid cells x steps): 256^3 x 256, a few seconds
+ * of a thread-pool thread (cloud_seed.h). */
+#define CLOUD_INIT_STEP_CELLS (1ull << 32)
 
 static int set_err(scene_error_t *err, int code, const char *path, const char *fmt, ...) {
   if (!err)
@@ -581,11 +583,11 @@ static int check_cloud(const cJSON *doc, scene_error_t *err) {
                      "cloud.grid: %g cells is over the limit of %u per side (limits.cloud_side)",
                      n[i], g_cloud_side);
   }
-  /* The seeding steps run on the scene's thread: bounded so that a change cannot stall it. */
+  /* The seeding steps are bounded so that one change cannot hold a thread for long. */
   double steps = get(get(cloud, "init"), "steps")->valuedouble;
   if (steps * n[0] * n[1] * n[2] > CLOUD_INIT_STEP_CELLS && cJSON_IsTrue(get(cloud, "enabled")))
     return set_err(err, PROTO_E_LIMIT, "cloud.init.steps",
-                   "cloud.init.steps: %g steps of a %gx%gx%g grid is over the limit of %d "
+                   "cloud.init.steps: %g steps of a %gx%gx%g grid is over the limit of %llu "
                    "cell-steps",
                    steps, n[0], n[1], n[2], CLOUD_INIT_STEP_CELLS);
   int i = 0;
@@ -655,41 +657,14 @@ static int cloud_same(const cJSON *a, const cJSON *b, const char *name) {
 }
 
 /*
- * Takes the cloud's init.steps automaton steps from the freshly seeded '*cells' (replaced by the
- * result) and fills 'density' with their metaball density, unsmoothed. Returns 0, or -1 on OOM
- * ('*cells' unchanged).
+ * The cells and density 'doc' gives the scene: none when the cloud is disabled; 'saved' and
+ * 'saved_density' (a snapshot's) when given and of the grid; the scene's own when it was
+ * enabled already with the same grid, seed and init; and otherwise freshly seeded cells, grown
+ * by init.steps automaton steps (cloud_seed.h). Sets '*seeded' for cells other than the
+ * scene's. Returns 0, or -1 with 'err' set (out of memory, or a seeding deferred).
  */
-static int cloud_grow(cloud_cells_t **cells, density_grid_t *density, const scene_cloud_t *c) {
-  cloud_cells_t *buf[2] = {cloud_cells_new(c->n), cloud_cells_new(c->n)};
-  if (!buf[0] || !buf[1]) {
-    cloud_cells_unref(buf[0]);
-    cloud_cells_unref(buf[1]);
-    return -1;
-  }
-  const cloud_cells_t *cur = *cells;
-  for (unsigned i = 0; i < c->init_steps; i++) {
-    cloud_step(cur, buf[i % 2], &c->params);
-    cur = buf[i % 2];
-  }
-  int last = (c->init_steps - 1) % 2;
-  if (cloud_density(buf[last], c->radius, density->data) != 0) {
-    cloud_cells_unref(buf[0]);
-    cloud_cells_unref(buf[1]);
-    return -1;
-  }
-  cloud_cells_unref(buf[1 - last]);
-  cloud_cells_unref(*cells);
-  *cells = buf[last];
-  return 0;
-}
-
-/*
- * The cells and density 'doc' gives the scene: none when the cloud is disabled, the scene's
- * own when it was enabled already with the same grid, seed and init, and otherwise freshly
- * seeded cells, grown by init.steps automaton steps (with none, no cloud and a zero density).
- * Sets '*seeded' for fresh cells. Returns 0 or -1 on OOM.
- */
-static int cloud_prepare(const scene_t *s, const cJSON *doc, cloud_cells_t **cells,
+static int cloud_prepare(const scene_t *s, const cJSON *doc, cloud_cells_t *saved,
+                         density_grid_t *saved_density, cloud_cells_t **cells,
                          density_grid_t **density, int *seeded, scene_error_t *err) {
   scene_cloud_t c;
   *cells = NULL;
@@ -697,31 +672,20 @@ static int cloud_prepare(const scene_t *s, const cJSON *doc, cloud_cells_t **cel
   *seeded = 0;
   if (cloud_config_of(doc, &c) != 0)
     return 0;
+  *seeded = 1;
+  if (saved && memcmp(saved->n, c.n, sizeof c.n) == 0) {
+    *cells = cloud_cells_ref(saved);
+    *density = density_grid_ref(saved_density);
+    return 0;
+  }
   if (s->doc && s->cloud_cells && cloud_same(s->doc, doc, "grid") &&
       cloud_same(s->doc, doc, "seed") && cloud_same(s->doc, doc, "init")) {
     *cells = cloud_cells_ref(s->cloud_cells);
     *density = density_grid_ref(s->cloud_density);
+    *seeded = 0;
     return 0;
   }
-  *cells = cloud_cells_new(c.n);
-  *density = *cells ? density_grid_new(c.n) : NULL;
-  if (!*density) {
-    cloud_cells_unref(*cells);
-    *cells = NULL;
-    return set_err(err, PROTO_E_INTERNAL, "", "out of memory for a %ux%ux%u cloud", c.n[0], c.n[1],
-                   c.n[2]);
-  }
-  cloud_cells_seed(*cells, &c.params, c.init_hum, c.init_act);
-  *seeded = 1;
-  if (c.init_steps > 0 && cloud_grow(cells, *density, &c) != 0) {
-    cloud_cells_unref(*cells);
-    density_grid_unref(*density);
-    *cells = NULL;
-    *density = NULL;
-    return set_err(err, PROTO_E_INTERNAL, "", "out of memory for a %ux%ux%u cloud", c.n[0], c.n[1],
-                   c.n[2]);
-  }
-  return 0;
+  return cloud_seed_get(&c, cells, density, err);
 }
 
 /* Fills rs->cloud from the document, showing 'density' (a reference is taken); no cloud when
@@ -880,7 +844,8 @@ static int files_ready(const cJSON *doc, scene_error_t *err) {
   return 0;
 }
 
-static int commit(scene_t *s, cJSON *doc, scene_error_t *err) {
+static int commit(scene_t *s, cJSON *doc, cloud_cells_t *saved, density_grid_t *saved_density,
+                  scene_error_t *err) {
   particles_t *particles = s->particles;
   int reseed = 0;
   cloud_cells_t *cells = NULL;
@@ -888,7 +853,7 @@ static int commit(scene_t *s, cJSON *doc, scene_error_t *err) {
   int seeded = 0;
   render_scene_t *rs = NULL;
   if (prepare(doc, err) != 0 || files_ready(doc, err) != 0 ||
-      cloud_prepare(s, doc, &cells, &density, &seeded, err) != 0)
+      cloud_prepare(s, doc, saved, saved_density, &cells, &density, &seeded, err) != 0)
     goto fail;
   const cJSON *init = get(get(doc, "fluid"), "initial");
   if (!s->doc || !cJSON_Compare(init, get(get(s->doc, "fluid"), "initial"), 1)) {
@@ -923,6 +888,7 @@ static int commit(scene_t *s, cJSON *doc, scene_error_t *err) {
     s->cloud_chain = NULL;
   }
   scene_files_prune();
+  cloud_seed_prune();
   return 0;
 fail:
   if (reseed)
@@ -931,6 +897,7 @@ fail:
   density_grid_unref(density);
   cJSON_Delete(doc);
   scene_files_prune();
+  cloud_seed_prune();
   return -1;
 }
 
@@ -956,7 +923,7 @@ scene_t *scene_create(const char *name, const cJSON *preset, scene_error_t *err)
   }
   snprintf(s->name, sizeof s->name, "%s", name);
   /* The first commit takes the version from 0 to 1, what scene.list shows for a new scene. */
-  if (commit(s, doc, err) != 0) {
+  if (commit(s, doc, NULL, NULL, err) != 0) {
     free(s);
     return NULL;
   }
@@ -974,6 +941,7 @@ void scene_destroy(scene_t *s) {
   cJSON_Delete(s->doc);
   free(s);
   scene_files_prune();
+  cloud_seed_prune();
 }
 
 cJSON *scene_get(const scene_t *s, const char *path, scene_error_t *err) {
@@ -1049,7 +1017,7 @@ int scene_patch(scene_t *s, const cJSON *patch, scene_error_t *err) {
     cJSON_Delete(doc);
     return set_err(err, PROTO_E_INTERNAL, "", "out of memory");
   }
-  return commit(s, doc, err);
+  return commit(s, doc, NULL, NULL, err);
 }
 
 /*
@@ -1120,17 +1088,22 @@ int scene_set_path(scene_t *s, const char *path, const cJSON *value, scene_error
       return set_err(err, PROTO_E_NOT_FOUND, path, "no such path in the scene: %s", path);
     return set_err(err, PROTO_E_INTERNAL, "", "out of memory");
   }
-  return commit(s, doc, err);
+  return commit(s, doc, NULL, NULL, err);
 }
 
 int scene_replace(scene_t *s, const cJSON *doc, scene_error_t *err) {
+  return scene_replace_with_cloud(s, doc, NULL, NULL, err);
+}
+
+int scene_replace_with_cloud(scene_t *s, const cJSON *doc, cloud_cells_t *cells,
+                             density_grid_t *density, scene_error_t *err) {
   clear_err(err);
   if (!cJSON_IsObject(doc))
     return set_err(err, PROTO_E_INVALID_PARAMS, "", "a scene document must be a JSON object");
   cJSON *copy = cJSON_Duplicate(doc, 1);
   if (!copy)
     return set_err(err, PROTO_E_INTERNAL, "", "out of memory");
-  return commit(s, copy, err);
+  return commit(s, copy, cells, density, err);
 }
 
 /* A new snapshot equal to 'old' but for the clock and the waves, compiled afresh from 'doc'

@@ -93,8 +93,12 @@ int scene_patch(scene_t *s, const cJSON *patch, scene_error_t *err);
  * an array index may be the array's length to append. Returns 0 or -1 with 'err'. */
 int scene_set_path(scene_t *s, const char *path, const cJSON *value, scene_error_t *err);
 
-/* Replaces the whole document (scene.load). Returns 0 or -1 with 'err'. */
+/* Replaces the whole document. Returns 0 or -1 with 'err'. */
 int scene_replace(scene_t *s, const cJSON *doc, scene_error_t *err);
+/* The same with the cloud's 'cells' and 'density' (references taken on success) in place of
+ * freshly seeded ones when the document enables a cloud of their grid (scene.load). */
+int scene_replace_with_cloud(scene_t *s, const cJSON *doc, cloud_cells_t *cells,
+                             density_grid_t *density, scene_error_t *err);
 
 /* Advances the clock: sim.time += steps * dt, sim.frame += steps, and the wave animations
  * with it (their current values written into the document); compiles one snapshot per call,

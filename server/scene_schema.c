@@ -787,7 +787,7 @@ static const sch_field_t cloud_init_fields[] = {
     {.name = "steps",
      .type = SCH_INTEGER,
      .desc = "Automaton steps taken at seeding, before the first frame, so that a scene can "
-             "open on a grown cloud (its density shown unsmoothed); at most 2^25 cell-steps "
+             "open on a grown cloud (its density shown unsmoothed); at most 2^32 cell-steps "
              "(grid cells x steps).",
      .min = 0,
      .max = 256,

@@ -365,9 +365,10 @@ static void load_done(uv_work_t *req, int status) {
                  w->file);
     } else {
       scene_error_t err = {0};
-      scene_file_t want;
+      defer_want_t want;
       defer_arm(call, &want);
-      int rc = scene_replace(e->scene, doc, &err);
+      /* The cells saved take the place of freshly seeded ones (cloud_fits checked their grid). */
+      int rc = scene_replace_with_cloud(e->scene, doc, w->cells, w->density, &err);
       if (defer_check(call, rc, &err, &want)) {
         /* A file the snapshot names is being read: the call runs again after, from the top. */
       } else if (rc != 0) {
@@ -379,13 +380,6 @@ static void load_done(uv_work_t *req, int status) {
         cJSON_AddBoolToObject(cJSON_AddObjectToObject(patch, "sim"), "playing", e->rate > 0);
         scene_patch(e->scene, patch, &err);
         cJSON_Delete(patch);
-        /* The cells saved replace the freshly seeded ones (cloud_fits checked their grid). */
-        if (w->cells && e->scene->cloud_cells &&
-            memcmp(e->scene->cloud_cells->n, w->cells->n, sizeof w->cells->n) == 0 &&
-            scene_set_cloud(e->scene, w->cells, w->density, 1) == 0) {
-          w->cells = NULL;
-          w->density = NULL;
-        }
         cJSON *r = cJSON_CreateObject();
         cJSON_AddStringToObject(r, "file", w->file);
         cJSON_AddNumberToObject(r, "version", (double)e->scene->version);

@@ -14,6 +14,7 @@ import json
 import os
 import queue
 import re
+import select
 import shutil
 import signal
 import socket
@@ -693,6 +694,25 @@ def check_envelope(resp):
         s.check(isinstance(e, dict) and isinstance(e.get("code"), int) and
                 isinstance(e.get("message"), str) and e.get("message") != "",
                 "error has an integer code and a non-empty message", short(resp))
+
+
+def config_file(cfg):
+    """A fresh volfxd.json holding 'cfg' (a dict) for `--config`; returns its path."""
+    path = os.path.join(tempfile.mkdtemp(prefix="volfx-cfg-"), "volfxd.json")
+    with open(path, "w") as f:
+        f.write(dumps(cfg))
+    return path
+
+
+def answered_meanwhile(other, busy, n=5, method="scene.list"):
+    """Sends 'n' requests one at a time on client 'other' while client 'busy' waits for an
+    answer; returns how many were answered before any of busy's answer had arrived."""
+    served = 0
+    for _ in range(n):
+        other.ok(method)
+        if not select.select([busy.sock], [], [], 0)[0]:
+            served += 1
+    return served
 
 
 def expect_error(suite, conn, method, params, code, path=None, what=None, raw=None):

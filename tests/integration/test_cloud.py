@@ -4,7 +4,9 @@ The cellular-automaton cloud against a real volfxd: cloud.set_cells / cloud.get_
 round-trip exactly, sim.step changes the cells exactly as a naive reference automaton written
 here from SPEC 5.4 says, the density after cloud.set_cells matches a direct Gaussian sum,
 dobashi clouds are reproducible per seed, bad inputs are refused with data.path and nothing
-changed, and a scene with a stepping cloud can be deleted and the server shut down cleanly.
+changed, fresh cells are seeded off the loop thread (other clients are answered meanwhile,
+requests behind the change wait for it), and a scene with a stepping cloud can be deleted and
+the server shut down cleanly.
 
     python3 tests/integration/test_cloud.py --bin build/bin
 """
@@ -268,10 +270,7 @@ def bad_inputs(s):
 
 @T
 def grid_limit_config(s):
-    d = mock.tempfile.mkdtemp(prefix="volfx-cloud-")
-    path = os.path.join(d, "volfxd.json")
-    with open(path, "w") as f:
-        f.write(json.dumps({"limits": {"cloud_side": 80, "output_bytes": 1 << 20}}))
+    path = mock.config_file({"limits": {"cloud_side": 80, "output_bytes": 1 << 20}})
     with mock.Server(s.bin, "--config", path) as srv:
         c = srv.connect()
         make(c, "lim", grid=(16, 16, 16))
@@ -345,19 +344,122 @@ def init_steps_grow_the_cloud(s):
     for f, want in zip(("hum", "act", "cld"), cells):
         s.check(get(c, "iz", f)[1] == bytes(want),
                 "changing init.steps reseeds and grows %s as the reference does" % f)
-    # Bounded: 2^25 cell-steps; nothing changes when refused.
+    # Bounded by the range of init.steps; nothing changes when refused.
     before = get(c, "iz", "cld")[1]
-    expect_error(s, c, "scene.set", {"scene": "iz", "patch": {"cloud": {
-        "grid": [64, 64, 64], "init": {"steps": 129}}}}, E_LIMIT, "cloud.init.steps",
-        "init.steps over 2^25 cell-steps")
     expect_error(s, c, "scene.set", {"scene": "iz", "path": "cloud.init.steps", "value": 257},
                  E_PARAMS, "cloud.init.steps", "init.steps over 256")
     s.eq(c.ok("scene.get", {"scene": "iz", "path": "cloud.init.steps"})[0], 3,
-         "the refused patches left init.steps")
-    s.check(get(c, "iz", "cld")[1] == before, "the refused patches left the cells")
+         "the refused patch left init.steps")
+    s.check(get(c, "iz", "cld")[1] == before, "the refused patch left the cells")
     c.ok("scene.set", {"scene": "iz", "patch": {"cloud": {"grid": [64, 64, 64],
-                                                         "init": {"steps": 128}}}}, timeout=60)
-    s.eq(get(c, "iz", "cld")[0].get("step"), 128, "128 steps of 64^3 are within the limit")
+                                                         "init": {"steps": 200}}}}, timeout=60)
+    s.eq(get(c, "iz", "cld")[0].get("step"), 200, "200 steps of 64^3 are taken at seeding")
+
+
+@T
+def init_steps_limit(s):
+    """Past the default limits, a grid's cells times init.steps may not exceed 2^32."""
+    path = mock.config_file({"limits": {"cloud_side": 512}})
+    with mock.Server(s.bin, "--config", path) as srv:
+        c = srv.connect()
+        make(c, "lim", grid=(16, 16, 16), init={"steps": 2})
+        expect_error(s, c, "scene.set", {"scene": "lim", "patch": {"cloud": {
+            "grid": [512, 256, 256], "init": {"steps": 129}}}}, E_LIMIT, "cloud.init.steps",
+            "512x256x256 cells x 129 steps, over 2^32 cell-steps")
+        s.eq(c.ok("scene.get", {"scene": "lim", "path": "cloud.grid"})[0], [16, 16, 16],
+             "the refused patch left the grid")
+        s.eq(get(c, "lim", "cld")[0].get("step"), 2, "the refused patch left the cells")
+
+# A 256^3 Dobashi cloud grown 16 steps: a few hundred milliseconds of seeding on an idle core.
+BIG_CLOUD = {"enabled": True, "grid": [256, 256, 256], "rules": "dobashi", "p_ext": 0.01,
+             "init": {"steps": 16}}
+
+
+@T
+def seeding_off_the_loop(s):
+    a = s.srv.connect()
+    b = s.srv.connect()
+    a.ok("scene.create", {"name": "seed"})
+    req = a.request("scene.set", {"scene": "seed", "patch": {"cloud": dict(BIG_CLOUD, seed=1)}})
+    # Requests pipelined behind the change wait for it, and see it.
+    behind = [a.request("scene.get", {"scene": "seed", "path": "cloud.grid"}),
+              a.request("cloud.get_cells", {"scene": "seed", "field": "hum"})]
+    a.send_raw(b"".join(mock.dumps(r).encode() + b"\n" for r in [req] + behind))
+    time.sleep(0.02)  # Let the server take up a's change first.
+    served = mock.answered_meanwhile(b, a)
+    s.check(served > 0, "another client is answered while the cloud is seeded",
+            "%d of 5 answers came before the scene.set's" % served)
+    got = [a.recv_response(timeout=120) for _ in range(3)]
+    s.eq([g[0].get("id") for g in got], [req["id"]] + [r["id"] for r in behind],
+         "answered in order")
+    s.check("result" in got[0][0], "the change is made", mock.short(got[0][0]))
+    s.eq(got[1][0].get("result"), [256, 256, 256], "the scene.get behind it sees the new grid")
+    s.eq(len(got[2][1] or b""), 256 ** 3, "the cells behind it are the new grid's")
+    # The rest of a batch waits too.
+    batch = [a.request("scene.get", {"scene": "seed", "path": "cloud.seed"}),
+             a.request("scene.set", {"scene": "seed", "path": "cloud.seed", "value": 2}),
+             a.request("scene.get", {"scene": "seed", "path": "cloud.seed"})]
+    a.send(batch)
+    resp, _ = a.recv_response(timeout=120)
+    s.check(isinstance(resp, list) and len(resp) == 3, "one array answers the batch",
+            mock.short(resp))
+    if isinstance(resp, list) and len(resp) == 3:
+        s.eq([r.get("result") for r in (resp[0], resp[2])], [1, 2],
+             "the get after the reseeding change, in the same batch, sees it")
+        s.check("result" in resp[1], "the batch's change is made", mock.short(resp[1]))
+    # Refused changes still seed nothing and change nothing.
+    expect_error(s, a, "scene.set", {"scene": "seed", "patch": {"cloud": {"seed": 3,
+                 "p_ext": 2}}}, E_PARAMS, "cloud.p_ext", "a bad field beside a new seed")
+    s.eq(a.ok("scene.get", {"scene": "seed", "path": "cloud.seed"})[0], 2,
+         "the refused change left the seed")
+    a.ok("scene.delete", {"name": "seed"})
+
+
+@T
+def seeding_while_others_change_the_scene(s):
+    """Another client's change lands while this one's cells are seeded: the retry merges this
+    patch into the document as it then is, and the cells are those of the settings that won."""
+    a = s.srv.connect()
+    b = s.srv.connect()
+    make(a, "cc", grid=(16, 16, 16))
+    a.send(a.request("scene.set", {"scene": "cc", "patch": {"cloud": {
+        "grid": [128, 128, 128], "rules": "dobashi", "init": {"steps": 8}}}}))
+    time.sleep(0.005)
+    b.ok("scene.set", {"scene": "cc", "path": "cloud.seed", "value": 77}, timeout=120)
+    resp, _ = a.recv_response(timeout=120)
+    s.check("result" in resp, "the first change is made", mock.short(resp))
+    cloud = a.ok("scene.get", {"scene": "cc", "path": "cloud"})[0]
+    s.eq((cloud.get("grid"), cloud.get("seed"), cloud.get("init", {}).get("steps")),
+         ([128, 128, 128], 77, 8), "both changes are in the document")
+    make(b, "cc_ref", grid=(128, 128, 128), rules="dobashi", seed=77, init={"steps": 8})
+    for f in ("hum", "cld", "density"):
+        s.check(get(a, "cc", f)[1] == get(b, "cc_ref", f)[1],
+                "%s equals a fresh seeding of the final settings" % f)
+    for name in ("cc", "cc_ref"):
+        a.ok("scene.delete", {"name": name})
+
+
+@T
+def hang_up_while_seeding(s):
+    a = s.srv.connect()
+    a.ok("scene.create", {"name": "gone"})
+    a.send(a.request("scene.set", {"scene": "gone", "patch": {"cloud": dict(BIG_CLOUD)}}))
+    a.send(a.request("scene.list"))
+    time.sleep(0.02)
+    a.close()
+    b = s.srv.connect()
+    deadline = time.time() + 60
+    grid = None
+    while time.time() < deadline:
+        grid = b.ok("scene.get", {"scene": "gone", "path": "cloud"})[0]
+        if grid.get("enabled"):
+            break
+        time.sleep(0.05)
+    s.eq((grid.get("enabled"), grid.get("grid")), (True, [256, 256, 256]),
+         "the change of a client that left is made")
+    s.eq(get(b, "gone", "cld")[0].get("step"), 16, "with its cells grown")
+    b.ok("scene.delete", {"name": "gone"})
+    s.check(s.srv.alive(), "the server is still up")
 
 
 @T

@@ -11,7 +11,6 @@ fluid can be deleted and the server shut down cleanly.
 """
 
 import base64
-import json
 import math
 import os
 import struct
@@ -408,10 +407,7 @@ def presets(s):
 
 @T
 def particle_limit(s):
-    d = mock.tempfile.mkdtemp(prefix="volfx-fluid-")
-    path = os.path.join(d, "volfxd.json")
-    with open(path, "w") as f:
-        f.write(json.dumps({"limits": {"particles": 100}}))
+    path = mock.config_file({"limits": {"particles": 100}})
     with mock.Server(s.bin, "--config", path) as srv:
         c = srv.connect()
         fresh(c, "lim")

@@ -146,10 +146,7 @@ def bad_volumes(s):
 
 @T
 def side_limit(s):
-    d = mock.tempfile.mkdtemp(prefix="volfx-volumes-")
-    path = os.path.join(d, "volfxd.json")
-    with open(path, "w") as f:
-        f.write(mock.dumps({"limits": {"cloud_side": 8}}))
+    path = mock.config_file({"limits": {"cloud_side": 8}})
     # The demo's cloud grid is over a cloud_side of 8, so the main scene is another preset.
     with mock.Server(s.bin, "--config", path, "--scene", "paper-000") as srv:
         with open(os.path.join(srv.data_dir, "g.f32"), "wb") as f:
