@@ -1,5 +1,5 @@
 /*
- * Requests that wait for files or cloud cells (defer.h): the thread-pool work, the hold on the
+ * Requests that wait for files or seedings (defer.h): the thread-pool work, the hold on the
  * connection, and what is kept for the call.
  */
 #include "defer.h"
@@ -9,15 +9,15 @@
 
 #include "dispatch.h"
 
-/* The files read and the cells made for one call, referenced until it is answered. */
+/* The files read and the seedings made for one call, referenced until it is answered. */
 struct call_files {
   int n;
   scene_pin_t *pins;
-  char **paths;           /* Their resolved paths. */
-  int inline_reads;       /* Read any further file on the spot (one changed while waiting). */
-  cloud_seed_pin_t *seed; /* Cells made for the call, or NULL. */
-  int inline_seed;        /* Seed any further cells on the spot (the settings changed while
-                             waiting: another client changed the scene). */
+  char **paths;                 /* Their resolved paths. */
+  int inline_reads;             /* Read any further file on the spot (one changed while waiting). */
+  seed_pin_t *seed[SEED_KINDS]; /* The seeding made for the call, by kind, or NULL. */
+  int inline_seed[SEED_KINDS];  /* Seed that kind on the spot (its settings changed while
+                                   waiting: another client changed the scene). */
 };
 
 typedef struct load_job {
@@ -30,15 +30,17 @@ typedef struct load_job {
 typedef struct seed_job {
   uv_work_t req;
   call_t *call;
-  scene_cloud_t cloud;
-  cloud_seed_pin_t *pin;
+  seed_want_t want;
+  seed_kind_t kind;
+  seed_pin_t *pin;
   int rc;
 } seed_job_t;
 
 void defer_arm(call_t *call, defer_want_t *want) {
   struct call_files *f = call->files;
+  memset(&want->seed, 0, sizeof want->seed);
   scene_files_defer(f && f->inline_reads ? NULL : &want->file);
-  cloud_seed_defer(f && f->inline_seed ? NULL : &want->cloud);
+  seeding_defer(&want->seed, f ? f->inline_seed : NULL);
 }
 
 static struct call_files *files_of(call_t *call) {
@@ -87,7 +89,8 @@ void defer_release(call_t *call) {
   }
   free(f->pins);
   free(f->paths);
-  cloud_seed_unpin(f->seed);
+  for (int k = 0; k < SEED_KINDS; k++)
+    seeding_unpin(f->seed[k]);
   free(f);
   call->files = NULL;
 }
@@ -121,7 +124,11 @@ static void load_done(uv_work_t *req, int status) {
 
 static void seed_work(uv_work_t *req) {
   seed_job_t *j = req->data;
-  j->rc = cloud_seed_make(&j->cloud, &j->pin);
+  j->rc = seeding_make(&j->want, &j->pin);
+}
+
+static const char *seed_path(seed_kind_t kind) {
+  return kind == SEED_CLOUD ? "cloud" : "fluid.initial";
 }
 
 static void seed_done(uv_work_t *req, int status) {
@@ -131,12 +138,12 @@ static void seed_done(uv_work_t *req, int status) {
   c->refs++; /* As in load_done. */
   struct call_files *f = status == 0 && j->rc == 0 ? files_of(call) : NULL;
   if (!f) {
-    cloud_seed_unpin(j->pin);
-    call_error(call, PROTO_E_INTERNAL, "cloud",
-               "internal error: out of memory for a %ux%ux%u cloud", j->cloud.n[0], j->cloud.n[1],
-               j->cloud.n[2]);
+    seeding_unpin(j->pin);
+    seed_want_clear(&j->want); /* Not run when the work was cancelled. */
+    call_error(call, PROTO_E_INTERNAL, seed_path(j->kind), "internal error: out of memory for %s",
+               seed_path(j->kind));
   } else {
-    f->seed = j->pin;
+    f->seed[j->kind] = j->pin;
     call->method->handler(call);
   }
   free(j);
@@ -144,26 +151,32 @@ static void seed_done(uv_work_t *req, int status) {
   conn_unref(c);
 }
 
-/* Queues the seeding 'want' for 'call' (defer_check). */
-static void queue_seed(call_t *call, const scene_cloud_t *want) {
-  if (call->files && call->files->seed) {
+/* Queues the seeding 'want' (taken) for 'call' (defer_check). */
+static void queue_seed(call_t *call, seed_want_t *want) {
+  seed_kind_t kind = want->kind;
+  if (call->files && call->files->seed[kind]) {
     /* Seeded for this call already, with other settings: the scene changed meanwhile. Seed on
      * the spot rather than chase settings that keep changing. */
-    call->files->inline_seed = 1;
+    seed_want_clear(want);
+    call->files->inline_seed[kind] = 1;
     call->method->handler(call);
     return;
   }
   seed_job_t *j = calloc(1, sizeof *j);
   if (!j) {
-    call_error(call, PROTO_E_INTERNAL, "cloud", "internal error: out of memory");
+    seed_want_clear(want);
+    call_error(call, PROTO_E_INTERNAL, seed_path(kind), "internal error: out of memory");
     return;
   }
   j->req.data = j;
   j->call = call;
-  j->cloud = *want;
+  j->want = *want;
+  j->kind = kind;
+  want->fluid = NULL;
   if (uv_queue_work(call->srv->loop, &j->req, seed_work, seed_done) != 0) {
+    seed_want_clear(&j->want);
     free(j);
-    call_error(call, PROTO_E_INTERNAL, "cloud", "internal error: cannot queue the seeding");
+    call_error(call, PROTO_E_INTERNAL, seed_path(kind), "internal error: cannot queue the seeding");
     return;
   }
   conn_hold(call->conn);
@@ -171,11 +184,13 @@ static void queue_seed(call_t *call, const scene_cloud_t *want) {
 
 int defer_check(call_t *call, int rc, const scene_error_t *err, defer_want_t *wanted) {
   scene_files_defer(NULL);
-  cloud_seed_defer(NULL);
+  seeding_defer(NULL, NULL);
+  if (rc == 0 || err->code != SCENE_DEFERRED_SEED)
+    seed_want_clear(&wanted->seed);
   if (rc == 0)
     return 0;
   if (err->code == SCENE_DEFERRED_SEED) {
-    queue_seed(call, &wanted->cloud);
+    queue_seed(call, &wanted->seed);
     return 1;
   }
   if (err->code != SCENE_DEFERRED)

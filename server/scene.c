@@ -19,8 +19,8 @@
 #include <string.h>
 
 #include "anim.h"
-#include "cloud_seed.h"
 #include "scene_files.h"
+#include "seeding.h"
 #include "proto.h"
 
 /* Shortest distance between eye and target, relative to their magnitude: below this the
@@ -29,7 +29,7 @@
 /* Smallest sine of the angle between camera.up and the view direction (about 0.06 degrees). */
 #define UP_PARALLEL_EPS 1e-3
 /* Most cell-steps cloud.init.steps may take (grid cells x steps): 256^3 x 256, a few seconds
- * of a thread-pool thread (cloud_seed.h). */
+ * of a thread-pool thread (seeding.h). */
 #define CLOUD_INIT_STEP_CELLS (1ull << 32)
 
 static int set_err(scene_error_t *err, int code, const char *path, const char *fmt, ...) {
@@ -452,12 +452,7 @@ static int solid_inside(const solid_t *b, const float x[3]) {
   return b->kind == 2 && q[1] < 0;
 }
 
-/*
- * The particles of fluid.initial in a checked document, in 'out' (NULL when there are none):
- * each block's lattice, less the points inside an opaque object the fluid collides with
- * (which would burst out of it). Returns 0, or -1 on OOM.
- */
-static int seed_particles(const cJSON *doc, particles_t **out) {
+int scene_particles_of(const cJSON *doc, particles_t **out) {
   const cJSON *fluid = get(doc, "fluid");
   const cJSON *blocks = get(fluid, "initial");
   uint64_t total = 0;
@@ -660,7 +655,7 @@ static int cloud_same(const cJSON *a, const cJSON *b, const char *name) {
  * The cells and density 'doc' gives the scene: none when the cloud is disabled; 'saved' and
  * 'saved_density' (a snapshot's) when given and of the grid; the scene's own when it was
  * enabled already with the same grid, seed and init; and otherwise freshly seeded cells, grown
- * by init.steps automaton steps (cloud_seed.h). Sets '*seeded' for cells other than the
+ * by init.steps automaton steps (seeding.h). Sets '*seeded' for cells other than the
  * scene's. Returns 0, or -1 with 'err' set (out of memory, or a seeding deferred).
  */
 static int cloud_prepare(const scene_t *s, const cJSON *doc, cloud_cells_t *saved,
@@ -811,16 +806,11 @@ static int prepare(cJSON *doc, scene_error_t *err) {
 }
 
 /*
- * Makes 'doc' (owned, taken in every case) the scene's document if it is valid. A new value of
- * fluid.initial (or the first document) replaces the particles by its blocks; a cloud newly
- * enabled, or with a new grid, seed or init, gets freshly seeded cells.
- */
-/*
- * Looks up every mesh and volume file of the validated 'doc' once before the costlier parts of
- * a commit (the cloud's seeding steps, the particles): a file that must first be read off the
- * loop thread (a deferral, scene_files.h) then stops the commit before that work is done, not
- * after it, so a change that is retried once its file is read does that work once. Returns 0,
- * or -1 with 'err' set.
+ * Looks up every mesh and volume file of the validated 'doc' once before the seedings of a
+ * commit (the cloud's cells, the particles; seeding.h): a file that must first be read off the
+ * loop thread (a deferral, scene_files.h) then stops the commit before a seeding is looked up,
+ * so that a seeding made for the retry is made with the files in hand. Returns 0, or -1 with
+ * 'err' set.
  */
 static int files_ready(const cJSON *doc, scene_error_t *err) {
   int i = 0;
@@ -844,6 +834,13 @@ static int files_ready(const cJSON *doc, scene_error_t *err) {
   return 0;
 }
 
+/*
+ * Makes 'doc' (owned, taken in every case) the scene's document if it is valid. A new value of
+ * fluid.initial (or the first document) replaces the particles by its blocks; a cloud newly
+ * enabled, or with a new grid, seed or init, gets freshly seeded cells, or 'saved' and
+ * 'saved_density' when given (a snapshot's). Fails with SCENE_DEFERRED or SCENE_DEFERRED_SEED,
+ * having changed nothing, when a file or a seeding must be made elsewhere first.
+ */
 static int commit(scene_t *s, cJSON *doc, cloud_cells_t *saved, density_grid_t *saved_density,
                   scene_error_t *err) {
   particles_t *particles = s->particles;
@@ -857,10 +854,8 @@ static int commit(scene_t *s, cJSON *doc, cloud_cells_t *saved, density_grid_t *
     goto fail;
   const cJSON *init = get(get(doc, "fluid"), "initial");
   if (!s->doc || !cJSON_Compare(init, get(get(s->doc, "fluid"), "initial"), 1)) {
-    if (seed_particles(doc, &particles) != 0) {
-      set_err(err, PROTO_E_INTERNAL, "", "out of memory");
+    if (particles_seed_get(doc, &particles, err) != 0)
       goto fail;
-    }
     reseed = 1;
   }
   cJSON_SetNumberValue(get(get(doc, "fluid"), "count"), (particles ? (double)particles->count : 0));
@@ -888,7 +883,7 @@ static int commit(scene_t *s, cJSON *doc, cloud_cells_t *saved, density_grid_t *
     s->cloud_chain = NULL;
   }
   scene_files_prune();
-  cloud_seed_prune();
+  seeding_prune();
   return 0;
 fail:
   if (reseed)
@@ -897,7 +892,7 @@ fail:
   density_grid_unref(density);
   cJSON_Delete(doc);
   scene_files_prune();
-  cloud_seed_prune();
+  seeding_prune();
   return -1;
 }
 
@@ -941,7 +936,7 @@ void scene_destroy(scene_t *s) {
   cJSON_Delete(s->doc);
   free(s);
   scene_files_prune();
-  cloud_seed_prune();
+  seeding_prune();
 }
 
 cJSON *scene_get(const scene_t *s, const char *path, scene_error_t *err) {

@@ -93,6 +93,14 @@ int scene_patch(scene_t *s, const cJSON *patch, scene_error_t *err);
  * an array index may be the array's length to append. Returns 0 or -1 with 'err'. */
 int scene_set_path(scene_t *s, const char *path, const cJSON *value, scene_error_t *err);
 
+/*
+ * The particles of fluid.initial in a checked document (only its "fluid" and "objects" are
+ * read), in 'out' (NULL when there are none): each block's lattice, less the points inside an
+ * opaque object the fluid collides with (which would burst out of it). Any thread. Returns 0,
+ * or -1 on OOM.
+ */
+int scene_particles_of(const cJSON *doc, particles_t **out);
+
 /* Replaces the whole document. Returns 0 or -1 with 'err'. */
 int scene_replace(scene_t *s, const cJSON *doc, scene_error_t *err);
 /* The same with the cloud's 'cells' and 'density' (references taken on success) in place of

@@ -715,6 +715,16 @@ def answered_meanwhile(other, busy, n=5, method="scene.list"):
     return served
 
 
+def batch(suite, conn, requests, timeout=120):
+    """Sends 'requests' as one batch on 'conn' and returns the answers, checked to be one array
+    answering them in order; None (a failed check) when they are not."""
+    conn.send(requests)
+    resp, _ = conn.recv_response(timeout=timeout)
+    ok = isinstance(resp, list) and [r.get("id") for r in resp] == [q["id"] for q in requests]
+    suite.check(ok, "one array answers the batch, in order", short(resp))
+    return resp if ok else None
+
+
 def expect_error(suite, conn, method, params, code, path=None, what=None, raw=None):
     """
     Sends a request (or 'raw' bytes, one line) and checks its error code and data.path.

@@ -95,16 +95,12 @@ def pipelined_requests_wait(s):
 
     # The rest of a batch waits too.
     big_mesh(s, "batch.obj")
-    batch = [c.request("scene.get", {"scene": "p", "path": "objects"}),
-             c.request("scene.set", {"scene": "p", "patch": {"objects": [mesh("batch.obj"),
-                                                                       mesh("pipe.obj")]}}),
-             c.request("scene.get", {"scene": "p", "path": "objects"})]
-    c.send(batch)
-    resp, _ = c.recv_response(timeout=120)
-    s.check(isinstance(resp, list) and len(resp) == 3, "one array answers the batch",
-            mock.short(resp))
-    if isinstance(resp, list) and len(resp) == 3:
-        s.eq([r.get("id") for r in resp], [b["id"] for b in batch], "batch answers in order")
+    resp = mock.batch(s, c, [
+        c.request("scene.get", {"scene": "p", "path": "objects"}),
+        c.request("scene.set", {"scene": "p", "patch": {"objects": [mesh("batch.obj"),
+                                                                  mesh("pipe.obj")]}}),
+        c.request("scene.get", {"scene": "p", "path": "objects"})])
+    if resp:
         s.eq(len(resp[0].get("result") or []), 1, "the get before the set sees one object")
         after = resp[2].get("result") or []
         s.eq([o.get("file") for o in after], ["batch.obj", "pipe.obj"],

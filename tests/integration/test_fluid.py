@@ -2,8 +2,10 @@
 """
 The particle fluid against a real volfxd: fluid.set_particles / fluid.get_particles round-trip
 bit-exact, sim.step moves the particles under gravity inside the bounds, the renderer draws
-them (beauty and depth), fluid.initial seeds the paper's Table 1 lattice, emitters fill the
-fluid over sim.step and sim.play up to fluid.max_particles (deterministically), bad inputs,
+them (beauty and depth), fluid.initial seeds the paper's Table 1 lattice, fluid.initial is laid out
+off the loop thread (other clients are answered meanwhile, requests behind the change wait for
+it), emitters fill the fluid over sim.step and sim.play up to fluid.max_particles
+(deterministically), bad inputs,
 emitters and blocks are refused with data.path and nothing changed, and a scene with a live
 fluid can be deleted and the server shut down cleanly.
 
@@ -266,6 +268,40 @@ def initial_blocks(s):
     s.eq(c.ok("scene.get", {"scene": "ini", "path": "fluid.count"})[0], 0,
          "an empty fluid.initial removes the particles")
     c.ok("scene.delete", {"name": "ini"})
+
+
+@T
+def laid_out_off_the_loop(s):
+    """2^20 lattice points, each tested against 40 objects: a few hundred milliseconds."""
+    a = s.srv.connect()
+    b = s.srv.connect()
+    fresh(a, "big")
+    objects = [{"shape": "box", "position": [-4 + 0.2 * i, 7, 4], "scale": [0.1, 0.1, 0.1]}
+               for i in range(40)]
+    block = {"origin": [-4, 0.01, -4], "spacing": 0.01, "nx": 512, "nz": 512, "count": 1 << 20}
+    req = a.request("scene.set", {"scene": "big", "patch": {"objects": objects, "fluid": {
+        "max_particles": 1 << 20, "bounds": {"min": [-5, 0, -5], "max": [5, 8, 5]},
+        "initial": [block]}}})
+    behind = a.request("scene.get", {"scene": "big", "path": "fluid.count"})
+    a.send_raw(b"".join(mock.dumps(r).encode() + b"\n" for r in (req, behind)))
+    time.sleep(0.02)  # Let the server take up a's change first.
+    served = mock.answered_meanwhile(b, a)
+    s.check(served > 0, "another client is answered while the particles are laid out",
+            "%d of 5 answers came before the scene.set's" % served)
+    got = [a.recv_response(timeout=120)[0] for _ in range(2)]
+    s.eq([g.get("id") for g in got], [req["id"], behind["id"]], "answered in order")
+    s.check("result" in got[0], "the change is made", mock.short(got[0]))
+    s.eq(got[1].get("result"), 1 << 20, "the scene.get behind it counts the new particles")
+    # The rest of a batch waits too.
+    resp = mock.batch(s, a, [
+        a.request("scene.get", {"scene": "big", "path": "fluid.count"}),
+        a.request("scene.set", {"scene": "big", "path": "fluid.initial.0.count",
+                                "value": (1 << 20) - 1}),
+        a.request("scene.get", {"scene": "big", "path": "fluid.count"})])
+    if resp:
+        s.eq([resp[0].get("result"), resp[2].get("result")], [1 << 20, (1 << 20) - 1],
+             "the get after the change, in the same batch, sees it")
+    a.ok("scene.delete", {"name": "big"})
 
 
 @T
