@@ -51,15 +51,21 @@ static void part_error(conn_t *c, reply_t *r, int i, const cJSON *id, int code, 
   part_error_n(c, r, i, id, 0, code, msg, path);
 }
 
-static void call_finish(call_t *call, cJSON *response, unsigned char *att, size_t att_len) {
+/* Finishes 'call' with 'response', or with the response already printed in 'line' (both
+ * taken), and attachment bytes 'att' (taken; may be NULL). */
+static void call_done(call_t *call, cJSON *response, char *line, size_t line_len,
+                      unsigned char *att, size_t att_len) {
   conn_t *c = call->conn;
   reply_part_t *p = &call->reply->parts[call->part];
   if (call->id) {
     p->response = response;
+    p->line = line;
+    p->line_len = line_len;
     p->att = att;
     p->att_len = att_len;
   } else {
     cJSON_Delete(response); /* A notification is run but never answered. */
+    free(line);
     free(att);
   }
   p->done = 1;
@@ -73,12 +79,16 @@ static void call_finish(call_t *call, cJSON *response, unsigned char *att, size_
   conn_unref(c);
 }
 
+static void call_finish(call_t *call, cJSON *response, unsigned char *att, size_t att_len) {
+  call_done(call, response, NULL, 0, att, att_len);
+}
+
 void call_result(call_t *call, cJSON *result) {
   call_finish(call, proto_make_result(call->id, result), NULL, 0);
 }
 
-void call_result_bytes(call_t *call, cJSON *result, unsigned char *bytes, size_t n,
-                       const char *format, uint32_t width, uint32_t height, int base64) {
+static void attachment_of(cJSON *result, size_t n, const char *format, uint32_t width,
+                          uint32_t height) {
   cJSON *att = cJSON_AddObjectToObject(result, "attachment");
   cJSON_AddNumberToObject(att, "bytes", (double)n);
   cJSON_AddStringToObject(att, "format", format);
@@ -86,6 +96,97 @@ void call_result_bytes(call_t *call, cJSON *result, unsigned char *bytes, size_t
     cJSON_AddNumberToObject(att, "width", width);
   if (height)
     cJSON_AddNumberToObject(att, "height", height);
+}
+
+/* An answer whose bytes are made, base64-encoded and printed on the thread pool. */
+typedef struct made_job {
+  uv_work_t req;
+  call_t *call;
+  cJSON *result; /* Becomes the response. */
+  cJSON *id;     /* A copy of the call's, to print the response with off the loop. */
+  call_bytes_fn make;
+  void (*drop)(void *);
+  void *ctx;
+  const char *format;
+  uint32_t width, height;
+  int base64;
+  unsigned char *bytes; /* Made, or given (make NULL). */
+  size_t n;
+  char *line; /* The response printed, when base64. */
+  size_t len;
+  int ok;
+} made_job_t;
+
+static void made_work(uv_work_t *req) {
+  made_job_t *j = req->data;
+  if (j->make)
+    j->bytes = j->make(j->ctx, &j->n);
+  if (!j->bytes)
+    return;
+  attachment_of(j->result, j->n, j->format, j->width, j->height);
+  if (!j->base64) {
+    j->ok = 1;
+    return;
+  }
+  char *text = malloc(proto_b64_encoded_len(j->n) + 1);
+  if (!text)
+    return;
+  proto_b64_encode(j->bytes, j->n, text);
+  free(j->bytes);
+  j->bytes = NULL;
+  /* A reference: the text is not copied into cJSON, and cJSON does not free it. */
+  cJSON_AddItemToObject(j->result, "data", cJSON_CreateStringReference(text));
+  cJSON *response = proto_make_result(j->id, j->result);
+  j->result = NULL;
+  j->line = proto_print_line(response, &j->len);
+  cJSON_Delete(response);
+  free(text);
+  j->ok = j->line != NULL;
+}
+
+static void made_done(uv_work_t *req, int status) {
+  made_job_t *j = req->data;
+  call_t *call = j->call;
+  if (j->drop)
+    j->drop(j->ctx);
+  if (status != 0 || !j->ok) {
+    free(j->bytes);
+    cJSON_Delete(j->result);
+    call_error(call, PROTO_E_INTERNAL, NULL, "internal error: out of memory for the answer");
+  } else if (j->line) {
+    call_done(call, NULL, j->line, j->len, NULL, 0);
+  } else {
+    call_finish(call, proto_make_result(call->id, j->result), j->bytes, j->n);
+  }
+  cJSON_Delete(j->id);
+  free(j);
+}
+
+/* Queues 'j' (filled but for its request); on failure answers the call at once. */
+static void made_queue(made_job_t *j) {
+  j->req.data = j;
+  j->id = j->call->id ? cJSON_Duplicate(j->call->id, 1) : NULL;
+  if ((j->call->id && !j->id) ||
+      uv_queue_work(j->call->srv->loop, &j->req, made_work, made_done) != 0)
+    made_done(&j->req, UV_ENOMEM);
+}
+
+void call_result_bytes(call_t *call, cJSON *result, unsigned char *bytes, size_t n,
+                       const char *format, uint32_t width, uint32_t height, int base64) {
+  made_job_t *j = base64 && n >= CALL_BYTES_OFF_LOOP ? calloc(1, sizeof *j) : NULL;
+  if (j) {
+    *j = (made_job_t){.call = call,
+                      .result = result,
+                      .format = format,
+                      .width = width,
+                      .height = height,
+                      .base64 = 1,
+                      .bytes = bytes,
+                      .n = n};
+    made_queue(j);
+    return;
+  }
+  attachment_of(result, n, format, width, height);
   if (base64) {
     char *text = malloc(proto_b64_encoded_len(n) + 1);
     if (!text) {
@@ -102,6 +203,32 @@ void call_result_bytes(call_t *call, cJSON *result, unsigned char *bytes, size_t
     return;
   }
   call_finish(call, proto_make_result(call->id, result), bytes, n);
+}
+
+void call_result_made(call_t *call, cJSON *result, call_bytes_fn make, void (*drop)(void *),
+                      void *ctx, size_t size, const char *format, int base64) {
+  made_job_t *j = size >= CALL_BYTES_OFF_LOOP ? calloc(1, sizeof *j) : NULL;
+  if (j) {
+    *j = (made_job_t){.call = call,
+                      .result = result,
+                      .make = make,
+                      .drop = drop,
+                      .ctx = ctx,
+                      .format = format,
+                      .base64 = base64};
+    made_queue(j);
+    return;
+  }
+  size_t n = 0;
+  unsigned char *bytes = make(ctx, &n);
+  if (drop)
+    drop(ctx);
+  if (!bytes) {
+    cJSON_Delete(result);
+    call_error(call, PROTO_E_INTERNAL, NULL, "internal error: out of memory");
+    return;
+  }
+  call_result_bytes(call, result, bytes, n, format, 0, 0, base64);
 }
 
 void call_error(call_t *call, int code, const char *path, const char *fmt, ...) {

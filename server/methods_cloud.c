@@ -222,6 +222,42 @@ static scene_entry_t *cloud_scene(call_t *call) {
   return e;
 }
 
+/* What cloud.get_cells sends: the cells or density (references, immutable), read on any
+ * thread. */
+typedef struct cells_out {
+  cloud_cells_t *cells;
+  density_grid_t *density; /* For the density field, else NULL. */
+  cloud_field_t field;
+} cells_out_t;
+
+static unsigned char *cells_bytes(void *ctx, size_t *nbytes) {
+  const cells_out_t *o = ctx;
+  size_t n = cloud_cells_count(o->cells);
+  *nbytes = o->density ? 4 * n : n;
+  unsigned char *bytes = malloc(*nbytes);
+  if (!bytes)
+    return NULL;
+  if (o->density) {
+    const float *src = o->density->data;
+    for (size_t i = 0; i < n; i++) {
+      uint32_t u;
+      memcpy(&u, &src[i], 4);
+      for (int b = 0; b < 4; b++)
+        bytes[4 * i + b] = (unsigned char)(u >> (8 * b));
+    }
+  } else {
+    cloud_cells_export(o->cells, o->field, bytes);
+  }
+  return bytes;
+}
+
+static void cells_out_drop(void *ctx) {
+  cells_out_t *o = ctx;
+  cloud_cells_unref(o->cells);
+  density_grid_unref(o->density);
+  free(o);
+}
+
 static void get_cells_m(call_t *call) {
   scene_entry_t *e = cloud_scene(call);
   if (!e)
@@ -242,22 +278,14 @@ static void get_cells_m(call_t *call) {
                (size_t)call->srv->cfg.limits.output_bytes);
     return;
   }
-  unsigned char *bytes = malloc(nbytes);
-  if (!bytes) {
+  cells_out_t *o = malloc(sizeof *o);
+  if (!o) {
     call_error(call, PROTO_E_INTERNAL, NULL, "internal error: out of memory");
     return;
   }
-  if (dens) {
-    const float *src = s->cloud_density->data;
-    for (size_t i = 0; i < n; i++) {
-      uint32_t u;
-      memcpy(&u, &src[i], 4);
-      for (int b = 0; b < 4; b++)
-        bytes[4 * i + b] = (unsigned char)(u >> (8 * b));
-    }
-  } else {
-    cloud_cells_export(s->cloud_cells, field_of(field), bytes);
-  }
+  *o = (cells_out_t){.cells = cloud_cells_ref(s->cloud_cells),
+                     .density = dens ? density_grid_ref(s->cloud_density) : NULL,
+                     .field = field_of(field)};
   cJSON *r = cJSON_CreateObject();
   cJSON_AddStringToObject(r, "field", field);
   cJSON *dims = cJSON_AddArrayToObject(r, "dims");
@@ -265,7 +293,7 @@ static void get_cells_m(call_t *call) {
     cJSON_AddItemToArray(dims, cJSON_CreateNumber(s->cloud_cells->n[i]));
   cJSON_AddNumberToObject(r, "cells", (double)n);
   cJSON_AddNumberToObject(r, "step", (double)s->cloud_cells->step);
-  call_result_bytes(call, r, bytes, nbytes, dens ? "f32" : "u8", 0, 0, base64);
+  call_result_made(call, r, cells_bytes, cells_out_drop, o, nbytes, dens ? "f32" : "u8", base64);
 }
 
 static void set_cells_m(call_t *call) {

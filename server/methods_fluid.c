@@ -461,31 +461,55 @@ out:
   free(buf[1]);
 }
 
+/* What fluid.get_particles sends: the particles (a reference, immutable; NULL for none), read
+ * on any thread. */
+typedef struct particles_out {
+  particles_t *particles;
+  int velocities;
+} particles_out_t;
+
+static unsigned char *particles_bytes(void *ctx, size_t *nbytes) {
+  const particles_out_t *o = ctx;
+  size_t n = o->particles ? (size_t)o->particles->count * 3 : 0;
+  const float *src = !o->particles ? NULL : o->velocities ? o->particles->vel : o->particles->pos;
+  *nbytes = 4 * n;
+  unsigned char *bytes = malloc(*nbytes ? *nbytes : 1);
+  if (!bytes)
+    return NULL;
+  for (size_t i = 0; i < n; i++) {
+    uint32_t u;
+    memcpy(&u, &src[i], 4);
+    for (int b = 0; b < 4; b++)
+      bytes[4 * i + b] = (unsigned char)(u >> (8 * b));
+  }
+  return bytes;
+}
+
+static void particles_out_drop(void *ctx) {
+  particles_out_t *o = ctx;
+  particles_unref(o->particles);
+  free(o);
+}
+
 static void get_particles_m(call_t *call) {
   scene_entry_t *e = call_scene(call);
   if (!e)
     return;
   const char *field = get(call->params, "field")->valuestring;
   int base64 = strcmp(get(call->params, "encoding")->valuestring, "base64") == 0;
-  const particles_t *p = e->scene->particles;
+  particles_t *p = e->scene->particles;
   uint32_t n = p ? p->count : 0;
-  const float *src = !p ? NULL : strcmp(field, "velocities") == 0 ? p->vel : p->pos;
-  size_t nbytes = (size_t)n * 12;
-  unsigned char *bytes = malloc(nbytes ? nbytes : 1);
-  if (!bytes) {
+  particles_out_t *o = malloc(sizeof *o);
+  if (!o) {
     call_error(call, PROTO_E_INTERNAL, NULL, "internal error: out of memory");
     return;
   }
-  for (size_t i = 0; i < (size_t)n * 3; i++) {
-    uint32_t u;
-    memcpy(&u, &src[i], 4);
-    for (int b = 0; b < 4; b++)
-      bytes[4 * i + b] = (unsigned char)(u >> (8 * b));
-  }
+  *o = (particles_out_t){.particles = p ? particles_ref(p) : NULL,
+                         .velocities = strcmp(field, "velocities") == 0};
   cJSON *r = cJSON_CreateObject();
   cJSON_AddNumberToObject(r, "count", n);
   cJSON_AddStringToObject(r, "field", field);
-  call_result_bytes(call, r, bytes, nbytes, "f32", 0, 0, base64);
+  call_result_made(call, r, particles_bytes, particles_out_drop, o, (size_t)n * 12, "f32", base64);
 }
 
 static const char *const fields[] = {"positions", "velocities", NULL};

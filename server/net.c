@@ -25,6 +25,7 @@ typedef struct write_req {
 static void free_reply(reply_t *r) {
   for (int i = 0; i < r->nparts; i++) {
     cJSON_Delete(r->parts[i].response);
+    free(r->parts[i].line);
     free(r->parts[i].att);
   }
   free(r);
@@ -125,32 +126,71 @@ void conn_write(conn_t *c, char *line, size_t len, unsigned char *att, size_t at
   }
 }
 
+/* The response of part 'p' printed, with its newline, into '*len' bytes: its own line when it
+ * has one (taken), else its cJSON printed. NULL when out of memory. */
+static char *part_text(reply_part_t *p, size_t *len) {
+  char *text = p->line;
+  *len = p->line_len;
+  p->line = NULL;
+  return text ? text : proto_print_line(p->response, len);
+}
+
+/* The line of a finished reply: one response, or the array answering a batch; NULL (with
+ * '*empty' set) when nothing is answered (notifications only) or when out of memory. */
+static char *reply_line(reply_t *r, size_t *len, int *empty) {
+  if (!r->batch) {
+    *empty = !r->parts[0].response && !r->parts[0].line;
+    return *empty ? NULL : part_text(&r->parts[0], len);
+  }
+  size_t total = 0, answered = 0;
+  char **texts = calloc((size_t)r->nparts, sizeof *texts);
+  size_t *lens = calloc((size_t)r->nparts, sizeof *lens);
+  int ok = texts && lens;
+  for (int i = 0; ok && i < r->nparts; i++) {
+    if (!r->parts[i].response && !r->parts[i].line)
+      continue;
+    ok = (texts[i] = part_text(&r->parts[i], &lens[i])) != NULL;
+    if (ok)
+      lens[i]--; /* Joined without their newlines. */
+    total += lens[i] + 1;
+    answered++;
+  }
+  *empty = ok && answered == 0;
+  /* '[', the texts with a comma after all but the last, ']', '\n' and a NUL. */
+  char *line = ok && answered ? malloc(total + 3) : NULL;
+  if (line) {
+    size_t at = 0;
+    line[at++] = '[';
+    for (int i = 0; i < r->nparts; i++) {
+      if (!texts[i])
+        continue;
+      if (at > 1)
+        line[at++] = ',';
+      memcpy(line + at, texts[i], lens[i]);
+      at += lens[i];
+    }
+    line[at++] = ']';
+    line[at++] = '\n';
+    line[at] = '\0';
+    *len = at;
+  }
+  for (int i = 0; texts && i < r->nparts; i++)
+    free(texts[i]);
+  free(texts);
+  free(lens);
+  return line;
+}
+
 /* Serialises a finished reply: one response line, or one array line for a batch, followed by
  * the attachments in response order. */
 static void write_reply(conn_t *c, reply_t *r) {
-  cJSON *out = NULL;
-  if (r->batch) {
-    out = cJSON_CreateArray();
-    for (int i = 0; i < r->nparts; i++)
-      if (r->parts[i].response) {
-        cJSON_AddItemToArray(out, r->parts[i].response);
-        r->parts[i].response = NULL;
-      }
-    if (cJSON_GetArraySize(out) == 0) {
-      cJSON_Delete(out);
-      out = NULL;
-    }
-  } else if (r->parts[0].response) {
-    out = r->parts[0].response;
-    r->parts[0].response = NULL;
-  }
-  if (!out) {
+  size_t len = 0;
+  int empty;
+  char *line = reply_line(r, &len, &empty);
+  if (empty) {
     free_reply(r);
     return;
   }
-  size_t len;
-  char *line = proto_print_line(out, &len);
-  cJSON_Delete(out);
   size_t att_len = 0;
   for (int i = 0; i < r->nparts; i++)
     att_len += r->parts[i].att_len;

@@ -27,7 +27,9 @@ typedef struct seq_job seq_job_t;
 
 /* One response (or nothing, for a notification) inside a reply. */
 typedef struct reply_part {
-  cJSON *response;    /* NULL for a notification. */
+  cJSON *response; /* NULL for a notification, or when 'line' holds the response. */
+  char *line;      /* The response already printed, with its newline, owned; or NULL. */
+  size_t line_len;
   unsigned char *att; /* Attachment bytes, owned; NULL when none. */
   size_t att_len;
   int done;
@@ -151,6 +153,18 @@ void call_result(call_t *call, cJSON *result);
  * 'base64' is set, as result.data. Adds result.attachment. */
 void call_result_bytes(call_t *call, cJSON *result, unsigned char *bytes, size_t n,
                        const char *format, uint32_t width, uint32_t height, int base64);
+/* Answers of this many bytes or more are made and encoded off the loop thread. */
+#define CALL_BYTES_OFF_LOOP (256 * 1024)
+/* Builds the bytes of a result's attachment: returns them (malloc'd) with their count in '*n',
+ * or NULL when out of memory. */
+typedef unsigned char *(*call_bytes_fn)(void *ctx, size_t *n);
+/* Finishes 'call' as call_result_bytes does, with the bytes make(ctx) returns. When about
+ * 'size' bytes or more are expected (CALL_BYTES_OFF_LOOP), make, the base64 encoding and the
+ * printing of the response run on libuv's thread pool, and the call is finished afterwards
+ * (its reply keeps its place); else all of it runs at once. drop(ctx) (may be NULL) runs on the
+ * loop thread when make is done with. */
+void call_result_made(call_t *call, cJSON *result, call_bytes_fn make, void (*drop)(void *),
+                      void *ctx, size_t size, const char *format, int base64);
 /* Finishes 'call' with an error; 'path' may be NULL. The message is printf-formatted. */
 void call_error(call_t *call, int code, const char *path, const char *fmt, ...)
     __attribute__((format(printf, 4, 5)));

@@ -404,6 +404,27 @@ def seeding_off_the_loop(s):
         s.eq([r.get("result") for r in (resp[0], resp[2])], [1, 2],
              "the get after the reseeding change, in the same batch, sees it")
         s.check("result" in resp[1], "the batch's change is made", mock.short(resp[1]))
+    # Big answers are made off the loop too: 16 MiB of cells as base64, 22 MB of text.
+    req = a.request("cloud.get_cells", {"scene": "seed", "field": "cld", "encoding": "base64"})
+    a.send(req)
+    time.sleep(0.01)
+    served = mock.answered_meanwhile(b, a)
+    s.check(served > 0, "another client is answered while 16 MiB of cells are encoded",
+            "%d of 5 answers came before the cells" % served)
+    resp, _ = a.recv_response(timeout=120)
+    data = base64.b64decode((resp.get("result") or {}).get("data", ""))
+    s.eq(len(data), 256 ** 3, "the base64 answer holds every cell")
+    s.check(data == get(a, "seed", "cld")[1], "base64 and the attachment carry the same cells")
+    # In a batch, between small answers.
+    resp = mock.batch(s, a, [
+        a.request("scene.get", {"scene": "seed", "path": "cloud.seed"}),
+        a.request("cloud.get_cells", {"scene": "seed", "field": "hum", "encoding": "base64"}),
+        a.request("scene.get", {"scene": "seed", "path": "cloud.grid"})])
+    if resp:
+        s.eq([resp[0].get("result"), resp[2].get("result")], [2, [256, 256, 256]],
+             "the small answers around a big one")
+        hum = base64.b64decode((resp[1].get("result") or {}).get("data", ""))
+        s.check(hum == get(a, "seed", "hum")[1], "the big answer in the batch carries the cells")
     # Refused changes still seed nothing and change nothing.
     expect_error(s, a, "scene.set", {"scene": "seed", "patch": {"cloud": {"seed": 3,
                  "p_ext": 2}}}, E_PARAMS, "cloud.p_ext", "a bad field beside a new seed")

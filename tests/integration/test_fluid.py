@@ -301,6 +301,18 @@ def laid_out_off_the_loop(s):
     if resp:
         s.eq([resp[0].get("result"), resp[2].get("result")], [1 << 20, (1 << 20) - 1],
              "the get after the change, in the same batch, sees it")
+    # 12 MiB of positions as base64 are encoded off the loop; the same as the attachment.
+    req = a.request("fluid.get_particles", {"scene": "big", "encoding": "base64"})
+    a.send(req)
+    time.sleep(0.01)
+    served = mock.answered_meanwhile(b, a)
+    s.check(served > 0, "another client is answered while the positions are encoded",
+            "%d of 5 answers came before them" % served)
+    resp, _ = a.recv_response(timeout=120)
+    data = base64.b64decode((resp.get("result") or {}).get("data", ""))
+    _, att = a.ok("fluid.get_particles", {"scene": "big"}, timeout=120)
+    s.eq(len(data), 12 * ((1 << 20) - 1), "every position")
+    s.check(data == att, "base64 and the attachment carry the same positions")
     a.ok("scene.delete", {"name": "big"})
 
 
