@@ -14,30 +14,7 @@
 #include <time.h>
 
 #include "sim_cloud.h"
-
-/* Wall time, and the CPU time of every thread of the process (the density pass runs on up to
- * four): on a busy shared machine the second says what the work costs, the first what it took. */
-static double now_ms(void) {
-  struct timespec t;
-  clock_gettime(CLOCK_MONOTONIC, &t);
-  return t.tv_sec * 1e3 + t.tv_nsec / 1e6;
-}
-
-static double cpu_ms(void) {
-  struct timespec t;
-  clock_gettime(CLOCK_PROCESS_CPUTIME_ID, &t);
-  return t.tv_sec * 1e3 + t.tv_nsec / 1e6;
-}
-
-static int cmp(const void *a, const void *b) {
-  double x = *(const double *)a, y = *(const double *)b;
-  return (x > y) - (x < y);
-}
-
-static double median(double *v, int n) {
-  qsort(v, (size_t)n, sizeof *v, cmp);
-  return n % 2 ? v[n / 2] : (v[n / 2 - 1] + v[n / 2]) / 2;
-}
+#include "bench_util.h"
 
 static size_t count_cld(const cloud_cells_t *c) {
   size_t n = 0, words = (size_t)c->words * c->n[1] * c->n[2];
@@ -82,21 +59,21 @@ int main(int argc, char **argv) {
     double radius = 9.0 * n / 64;
     double tk[1000], td[1000], tz[1000], tc[1000];
     for (int r = 0; r < runs; r++) {
-      double t0 = now_ms();
+      double t0 = bench_now_ms();
       cloud_step(a, b, &k);
-      double t1 = now_ms();
+      double t1 = bench_now_ms();
       cloud_step(a, b, &d);
-      double t2 = now_ms(), c2 = cpu_ms();
+      double t2 = bench_now_ms(), c2 = bench_cpu_ms();
       cloud_density(a, radius, dens);
-      double t3 = now_ms();
-      tc[r] = cpu_ms() - c2;
+      double t3 = bench_now_ms();
+      tc[r] = bench_cpu_ms() - c2;
       tk[r] = t1 - t0;
       td[r] = t2 - t1;
       tz[r] = t3 - t2;
     }
-    double mk = median(tk, runs), md = median(td, runs), mz = median(tz, runs);
+    double mk = bench_median(tk, runs), md = bench_median(td, runs), mz = bench_median(tz, runs);
     printf("%-6u %7.1f%% %10.3f %10.3f %10.2f %12.2f %8.1f %14.2f\n", n, 100.0 * cld / total, mk,
-           md, mz, median(tc, runs), radius, mk + mz);
+           md, mz, bench_median(tc, runs), radius, mk + mz);
     cloud_cells_unref(a);
     cloud_cells_unref(b);
     free(dens);

@@ -18,24 +18,9 @@
 #include <unistd.h>
 
 #include "render.h"
+#include "bench_util.h"
 
 #define MAX_RUNS 101
-
-static double now_ms(void) {
-  struct timespec ts;
-  clock_gettime(CLOCK_MONOTONIC, &ts);
-  return ts.tv_sec * 1e3 + ts.tv_nsec / 1e6;
-}
-
-static int cmp_double(const void *a, const void *b) {
-  double x = *(const double *)a, y = *(const double *)b;
-  return x < y ? -1 : x > y;
-}
-
-static double median(double *v, int n) {
-  qsort(v, (size_t)n, sizeof *v, cmp_double);
-  return n % 2 ? v[n / 2] : (v[n / 2 - 1] + v[n / 2]) / 2;
-}
 
 /* The demo scene of scenes/demo.json, by hand: a floor, two spheres, a box and a tetrahedron. */
 static robject_t demo_objects[] = {
@@ -83,12 +68,12 @@ static render_scene_t demo_scene = {
 static int child_create(const renderer_opts_t *opts) {
   char err[4096];
   renderer_t *r;
-  double t = now_ms();
+  double t = bench_now_ms();
   if (renderer_create(opts, &r, err, sizeof err) != 0) {
     fprintf(stderr, "renderer_create: %s\n", err);
     return 1;
   }
-  printf("%.3f\n", now_ms() - t);
+  printf("%.3f\n", bench_now_ms() - t);
   renderer_destroy(r);
   return 0;
 }
@@ -157,16 +142,8 @@ static int bench_startup(const char *self, const renderer_opts_t *opts, int runs
       return -1;
   }
   remove_tree(warm_dir);
-  *cold = median(c, runs);
-  *warm = median(w, runs);
-  return 0;
-}
-
-static double pass_ms(const render_output_t *out, const char *name) {
-  for (int i = 0; i < out->npasses; i++) {
-    if (strcmp(out->passes[i].name, name) == 0)
-      return out->passes[i].ms;
-  }
+  *cold = bench_median(c, runs);
+  *warm = bench_median(w, runs);
   return 0;
 }
 
@@ -194,32 +171,32 @@ static int bench_frame(renderer_t *r, uint32_t side, int runs, frame_times_t *ft
     }
     if (i < 0)
       continue; /* The first frame at a new size allocates its buffers. */
-    obj[i] = pass_ms(&out, "objects");
-    tm[i] = pass_ms(&out, "tonemap");
-    rb[i] = pass_ms(&out, "readback");
+    obj[i] = bench_pass_ms(&out, "objects");
+    tm[i] = bench_pass_ms(&out, "tonemap");
+    rb[i] = bench_pass_ms(&out, "readback");
     tot[i] = obj[i] + tm[i] + rb[i];
   }
   size_t n6 = 0, nfast = 0;
   for (int i = 0; i < runs; i++) {
     unsigned char *png;
-    double t = now_ms();
+    double t = bench_now_ms();
     if (encode_png(out.bytes, side, side, -1, &png, &nfast) != 0)
       return -1;
-    fast[i] = now_ms() - t;
+    fast[i] = bench_now_ms() - t;
     free(png);
-    t = now_ms();
+    t = bench_now_ms();
     if (encode_png(out.bytes, side, side, 6, &png, &n6) != 0)
       return -1;
-    l6[i] = now_ms() - t;
+    l6[i] = bench_now_ms() - t;
     free(png);
   }
   free(out.bytes);
-  ft->objects = median(obj, runs);
-  ft->tonemap = median(tm, runs);
-  ft->readback = median(rb, runs);
-  ft->render = median(tot, runs);
-  ft->png_fast = median(fast, runs);
-  ft->png6 = median(l6, runs);
+  ft->objects = bench_median(obj, runs);
+  ft->tonemap = bench_median(tm, runs);
+  ft->readback = bench_median(rb, runs);
+  ft->render = bench_median(tot, runs);
+  ft->png_fast = bench_median(fast, runs);
+  ft->png6 = bench_median(l6, runs);
   ft->png_fast_kb = nfast / 1024.0;
   ft->png6_kb = n6 / 1024.0;
   return 0;

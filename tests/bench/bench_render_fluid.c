@@ -22,14 +22,10 @@
 #include <string.h>
 
 #include "render.h"
+#include "bench_util.h"
 
 #define MAX_RUNS 101
 #define SPACING 0.305f /* h / 2 for the paper's h = 0.61. */
-
-static int cmp_double(const void *a, const void *b) {
-  double x = *(const double *)a, y = *(const double *)b;
-  return x < y ? -1 : x > y;
-}
 
 /* The floor under the water. */
 static robject_t floor_plane = {
@@ -236,8 +232,8 @@ int main(int argc, char **argv) {
             pass[i] = out.passes[j].ms;
         }
       }
-      qsort(total, (size_t)runs, sizeof(double), cmp_double);
-      qsort(pass, (size_t)runs, sizeof(double), cmp_double);
+      qsort(total, (size_t)runs, sizeof(double), bench_cmp_double);
+      qsort(pass, (size_t)runs, sizeof(double), bench_cmp_double);
       fps[c][k] = 1000 / total[runs / 2];
       fluid_ms[c][k] = pass[runs / 2];
     }

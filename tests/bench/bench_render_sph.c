@@ -14,17 +14,7 @@
 
 #include "cl_device.h"
 #include "sim_fluid.h"
-
-static double now_ms(void) {
-  struct timespec ts;
-  clock_gettime(CLOCK_MONOTONIC, &ts);
-  return ts.tv_sec * 1e3 + ts.tv_nsec * 1e-6;
-}
-
-static int cmp_double(const void *a, const void *b) {
-  double x = *(const double *)a, y = *(const double *)b;
-  return (x > y) - (x < y);
-}
+#include "bench_util.h"
 
 int main(int argc, char **argv) {
   int steps = argc > 1 ? atoi(argv[1]) : 15;
@@ -72,15 +62,15 @@ int main(int argc, char **argv) {
     double *ms = malloc(sizeof(double) * steps);
     int sub = 0;
     for (int i = 0; i < steps; i++) {
-      double t0 = now_ms();
+      double t0 = bench_now_ms();
       if (fluid_sim_step(s, 1.0 / 60, err, sizeof err) != 0) {
         fprintf(stderr, "%s\n", err);
         return 1;
       }
-      ms[i] = now_ms() - t0;
+      ms[i] = bench_now_ms() - t0;
       sub += fluid_sim_last_substeps(s);
     }
-    qsort(ms, steps, sizeof(double), cmp_double);
+    qsort(ms, steps, sizeof(double), bench_cmp_double);
     double med = ms[steps / 2], per = (double)sub / steps;
     printf("| %u | %.2f | %.2f | %.1f | %.2f | %s |\n", n, med, ms[0], per, med / per,
            n == 16384 ? "<= 8 ms per step" : "");

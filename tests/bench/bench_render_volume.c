@@ -19,18 +19,9 @@
 #include <time.h>
 
 #include "render.h"
+#include "bench_util.h"
 
 #define MAX_RUNS 101
-
-static int cmp_double(const void *a, const void *b) {
-  double x = *(const double *)a, y = *(const double *)b;
-  return x < y ? -1 : x > y;
-}
-
-static double median(double *v, int n) {
-  qsort(v, (size_t)n, sizeof *v, cmp_double);
-  return n % 2 ? v[n / 2] : (v[n / 2 - 1] + v[n / 2]) / 2;
-}
 
 /* scenes/paper-002.json. */
 static robject_t objects[] = {
@@ -124,14 +115,6 @@ static void fill_cloud(density_grid_t *g, int blobs, double phase) {
   }
 }
 
-/* CPU time of the whole process (every PoCL thread), ms: unlike the wall clock, it hardly
- * changes when other processes share the machine. */
-static double cpu_ms(void) {
-  struct timespec ts;
-  clock_gettime(CLOCK_PROCESS_CPUTIME_ID, &ts);
-  return ts.tv_sec * 1e3 + ts.tv_nsec / 1e6;
-}
-
 static double last_cpu; /* CPU ms of the last render_once. */
 
 static int render_once(renderer_t *r, const render_scene_t *s, uint32_t w, uint32_t h,
@@ -140,12 +123,12 @@ static int render_once(renderer_t *r, const render_scene_t *s, uint32_t w, uint3
   render_params_t p = {.width = w, .height = h, .format = fmt, .layers = LAYER_ALL, .png_level = 9};
   render_output_t out;
   char err[512];
-  double c0 = cpu_ms();
+  double c0 = bench_cpu_ms();
   if (renderer_render(r, s, &p, &out, err, sizeof err) != 0) {
     fprintf(stderr, "render: %s\n", err);
     return -1;
   }
-  last_cpu = cpu_ms() - c0;
+  last_cpu = bench_cpu_ms() - c0;
   double t = 0, v = 0;
   for (int i = 0; i < out.npasses; i++) {
     if (strcmp(out.passes[i].name, "encode") != 0)
@@ -269,8 +252,8 @@ int main(int argc, char **argv) {
       return 1;
     cpu[i] = last_cpu;
   }
-  double paper_ms = median(total, runs), paper_vol = median(vol, runs),
-         paper_cpu = median(cpu, runs);
+  double paper_ms = bench_median(total, runs), paper_vol = bench_median(vol, runs),
+         paper_cpu = bench_median(cpu, runs);
 
   /* Cloud-sized grids, a new grid every frame. */
   double cloud_ms[2], cloud_vol[2], still_ms[2], still_vol[2], cloud_cpu[2], still_cpu[2];
@@ -313,16 +296,16 @@ int main(int argc, char **argv) {
         return 1;
       cpu[i] = last_cpu;
     }
-    cloud_ms[c] = median(t, runs), cloud_vol[c] = median(v, runs);
-    cloud_cpu[c] = median(cpu, runs);
+    cloud_ms[c] = bench_median(t, runs), cloud_vol[c] = bench_median(v, runs);
+    cloud_cpu[c] = bench_median(cpu, runs);
     /* The same grid every frame: the kernel alone. */
     for (int i = 0; i < runs; i++) {
       if (render_once(r, &cs, 512, 512, PROTO_FMT_RGBA8, &t[i], &v[i], NULL) != 0)
         return 1;
       cpu[i] = last_cpu;
     }
-    still_ms[c] = median(t, runs), still_vol[c] = median(v, runs);
-    still_cpu[c] = median(cpu, runs);
+    still_ms[c] = bench_median(t, runs), still_vol[c] = bench_median(v, runs);
+    still_cpu[c] = bench_median(cpu, runs);
     renderer_destroy(r);
     if (renderer_create(&opts, &r, err, sizeof err) != 0) {
       fprintf(stderr, "renderer_create: %s\n", err);

@@ -20,6 +20,7 @@
 #include <time.h>
 
 #include "render.h"
+#include "bench_util.h"
 
 #define MAX_RUNS 201
 #define MAX_SETS 10
@@ -31,16 +32,6 @@
 #define SET_RADIUS 30.0f
 #define SET_EPS 0.3f
 #define SET_CLAMP 700.0f
-
-static int cmp_double(const void *a, const void *b) {
-  double x = *(const double *)a, y = *(const double *)b;
-  return x < y ? -1 : x > y;
-}
-
-static double median(double *v, int n) {
-  qsort(v, (size_t)n, sizeof *v, cmp_double);
-  return n % 2 ? v[n / 2] : (v[n / 2 - 1] + v[n / 2]) / 2;
-}
 
 /* The thesis' two tetrahedra (§4.1), at (0, 0, 0) and (10, 0, 250). */
 static robject_t tetrahedra[2] = {
@@ -112,21 +103,6 @@ typedef struct timing {
   double pass[NPASS]; /* Median ms of each of pass_names (0 where a frame has no such pass). */
 } timing_t;
 
-static double pass_ms(const render_output_t *out, const char *name) {
-  for (int i = 0; i < out->npasses; i++) {
-    if (strcmp(out->passes[i].name, name) == 0)
-      return out->passes[i].ms;
-  }
-  return 0;
-}
-
-/* The CPU time of the process so far, ms: the renderer's threads and PoCL's together. */
-static double cpu_ms(void) {
-  struct timespec ts;
-  clock_gettime(CLOCK_PROCESS_CPUTIME_ID, &ts);
-  return ts.tv_sec * 1e3 + ts.tv_nsec / 1e6;
-}
-
 /* Renders 's' 'runs' times (after one untimed frame) and takes the medians. */
 static int time_frames(renderer_t *r, const render_scene_t *s, const render_params_t *p, int runs,
                        timing_t *t) {
@@ -140,20 +116,20 @@ static int time_frames(renderer_t *r, const render_scene_t *s, const render_para
     }
     free(out.bytes);
     if (i < 0) {
-      cpu0 = cpu_ms();
+      cpu0 = bench_cpu_ms();
       continue;
     }
     for (int k = 0; k < NPASS; k++)
-      pass[k][i] = pass_ms(&out, pass_names[k]);
+      pass[k][i] = bench_pass_ms(&out, pass_names[k]);
     tot[i] = 0;
     for (int k = 0; k < out.npasses; k++)
       tot[i] += strcmp(out.passes[k].name, "encode") ? out.passes[k].ms : 0;
   }
-  t->cpu = (cpu_ms() - cpu0) / runs;
-  t->total = median(tot, runs);
-  t->best = tot[0]; /* median() sorted them. */
+  t->cpu = (bench_cpu_ms() - cpu0) / runs;
+  t->total = bench_median(tot, runs);
+  t->best = tot[0]; /* bench_median() sorted them. */
   for (int k = 0; k < NPASS; k++)
-    t->pass[k] = median(pass[k], runs);
+    t->pass[k] = bench_median(pass[k], runs);
   return 0;
 }
 
@@ -172,7 +148,7 @@ static float *render_h(renderer_t *r, const render_scene_t *s, uint32_t side, in
     fprintf(stderr, "render: %s\n", err);
     return NULL;
   }
-  *ms = pass_ms(&out, "waves");
+  *ms = bench_pass_ms(&out, "waves");
   return (float *)out.bytes;
 }
 
@@ -388,7 +364,7 @@ int main(int argc, char **argv) {
     n++;
   }
   free(exact), free(march);
-  double t_exact = median(exact_ms, runs), t_march = median(march_ms, runs);
+  double t_exact = bench_median(exact_ms, runs), t_march = bench_median(march_ms, runs);
 
   printf("Device: %s / %s. Thesis: GeForce 9600 GT, Core 2 Duo 3.0 GHz (Table 4.1).\n",
          renderer_platform_name(r), renderer_device_name(r));

@@ -25,6 +25,8 @@
 #include <time.h>
 #include <unistd.h>
 
+#include "bench_util.h"
+
 static const char request[] =
     "{\"jsonrpc\":\"2.0\",\"method\":\"scene.get\",\"params\":{\"path\":\"camera.fov_y\"},"
     "\"id\":1}\n";
@@ -96,11 +98,6 @@ static double pipelined(int port, long total) {
   return (double)total / dt;
 }
 
-static int cmp_double(const void *a, const void *b) {
-  double x = *(const double *)a, y = *(const double *)b;
-  return (x > y) - (x < y);
-}
-
 /* 'rate' > 0 paces each connection to that many requests per second; 0 is a closed loop. */
 static void concurrent(int port, int nconn, double seconds, double rate, double *rps, double *p50,
                        double *p99) {
@@ -162,7 +159,7 @@ static void concurrent(int port, int nconn, double seconds, double rate, double 
     }
   }
   double dt = now_s() - t0;
-  qsort(lat, n, sizeof(double), cmp_double);
+  qsort(lat, n, sizeof(double), bench_cmp_double);
   *rps = (double)n / dt;
   *p50 = n ? lat[n / 2] : 0;
   *p99 = n ? lat[(size_t)((double)n * 0.99)] : 0;
@@ -173,11 +170,6 @@ static void concurrent(int port, int nconn, double seconds, double rate, double 
   free(pfd);
   free(lat);
   free(due);
-}
-
-static double median(double *v, int n) {
-  qsort(v, (size_t)n, sizeof(double), cmp_double);
-  return n % 2 ? v[n / 2] : (v[n / 2 - 1] + v[n / 2]) / 2;
 }
 
 int main(int argc, char **argv) {
@@ -215,14 +207,15 @@ int main(int argc, char **argv) {
   }
   printf("| measure (median of %d runs) | volfx | target |\n| --- | ---: | ---: |\n", runs);
   printf("| pipelined small requests, 1 connection | %.0f req/s | >= 50,000 req/s |\n",
-         median(a, runs));
-  printf("| %d connections, closed loop: throughput | %.0f req/s | |\n", nconn, median(rps, runs));
+         bench_median(a, runs));
+  printf("| %d connections, closed loop: throughput | %.0f req/s | |\n", nconn,
+         bench_median(rps, runs));
   printf("| %d connections, closed loop: p50 / p99 latency | %.3f / %.3f ms | p99 <= 2 ms |\n",
-         nconn, median(p50, runs), median(p99, runs));
+         nconn, bench_median(p50, runs), bench_median(p99, runs));
   printf("| %d connections at %.0f req/s each: throughput | %.0f req/s | |\n", nconn, rate,
-         median(prps, runs));
+         bench_median(prps, runs));
   printf("| %d connections at %.0f req/s each: p50 / p99 latency | %.3f / %.3f ms | p99 <= 2 ms "
          "|\n",
-         nconn, rate, median(pp50, runs), median(pp99, runs));
+         nconn, rate, bench_median(pp50, runs), bench_median(pp99, runs));
   return 0;
 }
