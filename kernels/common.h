@@ -180,6 +180,39 @@ static inline float lanes_fmin(float16 v) {
   return fmin(c.x, c.y);
 }
 
+/*
+ * Sixteen lines from per-lane origins (ox, oy, oz) along one shared direction d (shadow rays,
+ * and the lines of the shadow map), as the mesh traversals of objects.cl and volume.cl walk
+ * them. node_span16: the distances along d inside the box of BVH node 'n' (its lower corner,
+ * then its upper), [*lo, *hi], empty where *lo > *hi; (ix, iy, iz) is 1 / d, and fmin / fmax
+ * drop the NaN of 0 * inf, which leaves that axis unbounded. tri_line16: the distance along d
+ * of the plane of triangle 'tr' (a vertex, then two edges), any sign, with the lanes whose
+ * line crosses the triangle in '*inside' (Moller-Trumbore, double-sided; the terms in d alone
+ * are scalars, and a degenerate triangle gives NaNs, which fail every comparison).
+ */
+static inline void node_span16(__global const float *n, float16 ox, float16 oy, float16 oz,
+                               float ix, float iy, float iz, float16 *lo, float16 *hi) {
+  float16 t0x = (n[0] - ox) * ix, t1x = (n[3] - ox) * ix;
+  float16 t0y = (n[1] - oy) * iy, t1y = (n[4] - oy) * iy;
+  float16 t0z = (n[2] - oz) * iz, t1z = (n[5] - oz) * iz;
+  *lo = fmax(fmax(fmin(t0x, t1x), fmin(t0y, t1y)), fmin(t0z, t1z));
+  *hi = fmin(fmin(fmax(t0x, t1x), fmax(t0y, t1y)), fmax(t0z, t1z));
+}
+
+static inline float16 tri_line16(__global const float *tr, float16 ox, float16 oy, float16 oz,
+                                 float dx, float dy, float dz, int16 *inside) {
+  float e1x = tr[3], e1y = tr[4], e1z = tr[5];
+  float e2x = tr[6], e2y = tr[7], e2z = tr[8];
+  float px = dy * e2z - dz * e2y, py = dz * e2x - dx * e2z, pz = dx * e2y - dy * e2x;
+  float inv = 1.0f / (e1x * px + e1y * py + e1z * pz);
+  float16 sx = ox - tr[0], sy = oy - tr[1], sz = oz - tr[2];
+  float16 u = (sx * px + sy * py + sz * pz) * inv;
+  float16 qx = sy * e1z - sz * e1y, qy = sz * e1x - sx * e1z, qz = sx * e1y - sy * e1x;
+  float16 v = (dx * qx + dy * qy + dz * qz) * inv;
+  *inside = (u >= 0.0f) & (v >= 0.0f) & (u + v <= 1.0f);
+  return (e2x * qx + e2y * qy + e2z * qz) * inv;
+}
+
 #endif
 
 #endif

@@ -129,11 +129,9 @@ static intv mesh_any(__global const float *restrict nodes, __global const float 
   int sp = 0, node = 0;
   for (;;) {
     __global const float *n = nodes + node * NODE_STRIDE;
-    floatv t0x = (n[0] - ox) * ix, t1x = (n[3] - ox) * ix;
-    floatv t0y = (n[1] - oy) * iy, t1y = (n[4] - oy) * iy;
-    floatv t0z = (n[2] - oz) * iz, t1z = (n[5] - oz) * iz;
-    floatv lo = fmax(fmax(fmin(t0x, t1x), fmin(t0y, t1y)), fmax(fmin(t0z, t1z), 0.0f));
-    floatv hi = fmin(fmin(fmax(t0x, t1x), fmax(t0y, t1y)), fmax(t0z, t1z));
+    floatv lo, hi;
+    node_span16(n, ox, oy, oz, ix, iy, iz, &lo, &hi);
+    lo = fmax(lo, 0.0f);
     if (any((lo <= hi) & active & ~blocked)) {
       int count = as_int(n[NODE_COUNT]), first = as_int(n[NODE_FIRST]);
       if (count == 0) {
@@ -142,17 +140,9 @@ static intv mesh_any(__global const float *restrict nodes, __global const float 
         continue;
       }
       for (int i = first; i < first + count; i++) {
-        __global const float *tr = tris + i * TRI_STRIDE;
-        float e1x = tr[3], e1y = tr[4], e1z = tr[5];
-        float e2x = tr[6], e2y = tr[7], e2z = tr[8];
-        float px = dy * e2z - dz * e2y, py = dz * e2x - dx * e2z, pz = dx * e2y - dy * e2x;
-        float inv = 1.0f / (e1x * px + e1y * py + e1z * pz);
-        floatv sx = ox - tr[0], sy = oy - tr[1], sz = oz - tr[2];
-        floatv u = (sx * px + sy * py + sz * pz) * inv;
-        floatv qx = sy * e1z - sz * e1y, qy = sz * e1x - sx * e1z, qz = sx * e1y - sy * e1x;
-        floatv v = (dx * qx + dy * qy + dz * qz) * inv;
-        floatv t = (e2x * qx + e2y * qy + e2z * qz) * inv;
-        blocked |= (u >= 0.0f) & (v >= 0.0f) & (u + v <= 1.0f) & (t > 0.0f);
+        intv inside;
+        floatv t = tri_line16(tris + i * TRI_STRIDE, ox, oy, oz, dx, dy, dz, &inside);
+        blocked |= inside & (t > 0.0f);
       }
       if (!any(active & ~blocked))
         return blocked;

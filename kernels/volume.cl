@@ -355,12 +355,9 @@ static void vol_mesh_nearest(__global const float *restrict nodes,
   int sp = 0, node = 0;
   for (;;) {
     __global const float *nd = nodes + node * NODE_STRIDE;
-    vf t0x = (nd[0] - ox) * ix, t1x = (nd[3] - ox) * ix;
-    vf t0y = (nd[1] - oy) * iy, t1y = (nd[4] - oy) * iy;
-    vf t0z = (nd[2] - oz) * iz, t1z = (nd[5] - oz) * iz;
-    /* fmin/fmax drop the NaN of 0 * inf, which leaves that axis unbounded: safe. */
-    vf lo = fmax(fmax(fmin(t0x, t1x), fmin(t0y, t1y)), fmin(t0z, t1z));
-    vf hi = fmin(fmin(fmax(t0x, t1x), fmax(t0y, t1y)), fmin(fmax(t0z, t1z), *best));
+    vf lo, hi;
+    node_span16(nd, ox, oy, oz, ix, iy, iz, &lo, &hi);
+    hi = fmin(hi, *best);
     if (any(lo <= hi)) {
       int count = as_int(nd[NODE_COUNT]), first = as_int(nd[NODE_FIRST]);
       if (count == 0) {
@@ -369,18 +366,9 @@ static void vol_mesh_nearest(__global const float *restrict nodes,
         continue;
       }
       for (int i = first; i < first + count; i++) {
-        __global const float *tr = tris + i * TRI_STRIDE;
-        float e1x = tr[3], e1y = tr[4], e1z = tr[5];
-        float e2x = tr[6], e2y = tr[7], e2z = tr[8];
-        float px = dy * e2z - dz * e2y, py = dz * e2x - dx * e2z, pz = dx * e2y - dy * e2x;
-        float inv = 1.0f / (e1x * px + e1y * py + e1z * pz);
-        vf sx = ox - tr[0], sy = oy - tr[1], sz = oz - tr[2];
-        vf u = (sx * px + sy * py + sz * pz) * inv;
-        vf qx = sy * e1z - sz * e1y, qy = sz * e1x - sx * e1z, qz = sx * e1y - sy * e1x;
-        vf v = (dx * qx + dy * qy + dz * qz) * inv;
-        vf t = (e2x * qx + e2y * qy + e2z * qz) * inv;
-        vi hit = (u >= 0.0f) & (v >= 0.0f) & (u + v <= 1.0f) & (t < *best);
-        *best = select(*best, t, hit);
+        vi inside;
+        vf t = tri_line16(tris + i * TRI_STRIDE, ox, oy, oz, dx, dy, dz, &inside);
+        *best = select(*best, t, inside & (t < *best));
       }
     }
     if (sp == 0)
