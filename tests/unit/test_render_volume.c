@@ -304,15 +304,26 @@ static void test_shadow(void) {
                                      {.5f, .5f, .5f},    {-.5f, .5f, .5f}};
   static const int face[12][3] = {{0, 1, 2}, {0, 2, 3}, {4, 6, 5}, {4, 7, 6}, {0, 4, 5}, {0, 5, 1},
                                   {3, 2, 6}, {3, 6, 7}, {0, 3, 7}, {0, 7, 4}, {1, 5, 6}, {1, 6, 2}};
-  float tri[12 * 9];
+  /* On the heap: the renderer keeps a reference to a mesh it has drawn. */
+  mesh_t *cube = calloc(1, sizeof *cube);
+  float *tri = malloc(12 * 9 * sizeof *tri);
+  CHECK(cube && tri, "out of memory");
+  if (!cube || !tri) {
+    free(cube);
+    free(tri);
+    free(img);
+    free_grid(g);
+    return;
+  }
   for (int t = 0; t < 12; t++)
     for (int k = 0; k < 3; k++)
       memcpy(&tri[9 * t + 3 * k], corner[face[t][k]], sizeof corner[0]);
-  mesh_t cube = {.ntri = 12, .tri = tri};
-  atomic_init(&cube.refs, 1);
+  cube->ntri = 12;
+  cube->tri = tri;
+  atomic_init(&cube->refs, 1);
   robject_t as_mesh = occ;
   as_mesh.shape = SHAPE_MESH;
-  as_mesh.mesh = &cube;
+  as_mesh.mesh = cube;
   s.objects = &as_mesh;
   float *img2 = render_f32(&s, w, h, LAYER_ALL);
   CHECK(img2 != NULL, "render of the mesh occluder failed");
@@ -322,6 +333,7 @@ static void test_shadow(void) {
   CHECK(img2 && worst < 0.02 * lit, "a mesh occluder's shadow differs from its box's by %.6f",
         worst);
   printf("shadow of a mesh: largest difference from the box's %.2g (lit %.4f)\n", worst, lit);
+  mesh_unref(cube);
   free(img2);
   free(img);
   free_grid(g);
