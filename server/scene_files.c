@@ -29,10 +29,14 @@ typedef struct file_entry {
   int u8;
   mesh_t *mesh;
   density_grid_t *data;
-  /* A read that failed, kept only until the next prune: the request that read the file off
-   * the loop thread runs again and answers with this error in its own words. */
+  /* A read that failed, kept while the request that read it pins it (scene_pin_t.fault) and
+   * until the next prune after that: the request runs again and answers with this error in
+   * its own words, however long its retry takes to come (scene.load reads its snapshot again
+   * first). */
   int failed;
   scene_error_t fault;
+  int pins;     /* Guarded by g_lock. */
+  int unlinked; /* Out of the list (its file changed) but still pinned: freed by the last pin. */
   struct file_entry *next;
 } file_entry_t;
 
@@ -70,7 +74,7 @@ static void entry_free(file_entry_t *e) {
 
 static int entry_refs(const file_entry_t *e) {
   if (e->failed)
-    return 0;
+    return e->pins > 0 ? 2 : 0;
   return e->grid ? atomic_load(&e->data->refs) : atomic_load(&e->mesh->refs);
 }
 
@@ -122,7 +126,10 @@ static int lookup(const scene_file_t *f, scene_pin_t *pin, scene_error_t *err) {
       hit = 1;
     } else {
       *pp = e->next;
-      entry_free(e);
+      if (e->failed && e->pins > 0)
+        e->unlinked = 1;
+      else
+        entry_free(e);
     }
     break;
   }
@@ -156,6 +163,8 @@ static void insert(const scene_file_t *f, scene_pin_t *pin, const scene_error_t 
     if (fault) {
       e->failed = 1;
       e->fault = *fault;
+      e->pins = 1;
+      pin->fault = e;
     }
     e->next = g_files;
     g_files = e;
@@ -170,6 +179,14 @@ void scene_pin_release(scene_pin_t *pin) {
   density_grid_unref(pin->grid);
   pin->mesh = NULL;
   pin->grid = NULL;
+  if (pin->fault) {
+    file_entry_t *e = pin->fault;
+    pthread_mutex_lock(&g_lock);
+    if (--e->pins == 0 && e->unlinked)
+      entry_free(e);
+    pthread_mutex_unlock(&g_lock);
+    pin->fault = NULL;
+  }
 }
 
 /* Replaces the absolute 'real' path in a loader message by the client's 'file', so errors do
@@ -244,6 +261,7 @@ int scene_file_load(const scene_file_t *f, scene_pin_t *pin, scene_error_t *err)
     err = &local;
   pin->mesh = NULL;
   pin->grid = NULL;
+  pin->fault = NULL;
   int ok;
   if (f->grid) {
     ok = (pin->grid = grid_read(f, err)) != NULL;
@@ -288,9 +306,11 @@ static int get(scene_file_t *f, scene_pin_t *pin, scene_error_t *err) {
 
 mesh_t *scene_mesh_get(const char *file, const char *path, scene_error_t *err) {
   scene_file_t f = {.grid = 0};
-  scene_pin_t pin;
-  if (resolve(file, path, &f, err) != 0 || get(&f, &pin, err) != 0)
+  scene_pin_t pin = {0};
+  if (resolve(file, path, &f, err) != 0 || get(&f, &pin, err) != 0) {
+    scene_pin_release(&pin); /* A fault read on the spot stays cached only until a prune. */
     return NULL;
+  }
   return pin.mesh;
 }
 
@@ -299,8 +319,10 @@ density_grid_t *scene_grid_get(const char *file, int index, const uint32_t dims[
   char p[64];
   snprintf(p, sizeof p, "volumes.%d.file", index);
   scene_file_t f = {.grid = 1, .dims = {dims[0], dims[1], dims[2]}, .u8 = u8};
-  scene_pin_t pin;
-  if (resolve(file, p, &f, err) != 0 || get(&f, &pin, err) != 0)
+  scene_pin_t pin = {0};
+  if (resolve(file, p, &f, err) != 0 || get(&f, &pin, err) != 0) {
+    scene_pin_release(&pin);
     return NULL;
+  }
   return pin.grid;
 }

@@ -41,6 +41,7 @@ typedef struct scene_file {
 typedef struct scene_pin {
   mesh_t *mesh;
   density_grid_t *grid;
+  struct file_entry *fault; /* A failed read, kept cached for the request; else NULL. */
 } scene_pin_t;
 
 /* Until called again with NULL, a lookup that misses fills '*want' and fails with
@@ -48,8 +49,9 @@ typedef struct scene_pin {
 void scene_files_defer(scene_file_t *want);
 
 /* Reads 'f' into the cache, with a reference in 'pin'. Any thread. Returns 0, or -1 with 'err'
- * naming the field and the fault (wrong size, bad data, unreadable); the fault is then cached
- * until the next prune, so a lookup of the same file for the same field fails with it at once. */
+ * naming the field and the fault (wrong size, bad data, unreadable); the fault is then cached,
+ * pinned by 'pin' and until the next prune after its release, so a lookup of the same file for
+ * the same field fails with it at once. */
 int scene_file_load(const scene_file_t *f, scene_pin_t *pin, scene_error_t *err);
 void scene_pin_release(scene_pin_t *pin);
 

@@ -176,6 +176,39 @@ def snapshot_with_a_bad_file(s):
 
 
 @T
+def fault_outlives_other_commits(s):
+    """scene.load reads its snapshot again before its retry: other clients' changes meanwhile
+    (each prunes the cache) must not drop the fault its read left, or the retry would read the
+    bad file again on the loop thread, holding every client for as long as the read."""
+    a = s.srv.connect()
+    b = s.srv.connect()
+    a.ok("scene.create", {"name": "fo"})
+    b.ok("scene.create", {"name": "fo_other"})
+    write(s, "fo.obj", TRI)
+    a.ok("scene.set", {"scene": "fo", "patch": {"objects": [mesh("fo.obj")]}})
+    a.ok("scene.save", {"scene": "fo", "file": "fo.snap"})
+    a.ok("scene.set", {"scene": "fo", "patch": {"objects": []}})
+    path = write(s, "fo.obj", BIG_VERTS + b"f 1 2 99999999\n")
+    t = time.time() + 200
+    os.utime(path, (t, t))
+    req = a.request("scene.load", {"scene": "fo", "file": "fo.snap"})
+    t0 = time.monotonic()
+    a.send(req)
+    worst, n = 0.0, 0
+    while not mock.select.select([a.sock], [], [], 0)[0]:
+        t1 = time.monotonic()
+        b.ok("scene.set", {"scene": "fo_other", "path": "camera.fov_y", "value": 40 + n % 10})
+        worst = max(worst, time.monotonic() - t1)
+        n += 1
+    took = time.monotonic() - t0
+    resp, _ = a.recv_response(timeout=120)
+    s.eq((resp.get("error") or {}).get("data", {}).get("path"), "objects.0.file",
+         "the load is refused for its bad mesh")
+    s.check(worst < took / 4, "other clients' changes are answered while the load waits",
+            "longest %.3f s of %.3f s, %d changes" % (worst, took, n))
+
+
+@T
 def several_new_files(s):
     c = s.srv.connect()
     c.ok("scene.create", {"name": "m"})
