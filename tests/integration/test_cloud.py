@@ -569,5 +569,33 @@ def delete_and_shutdown(s):
         s.eq(srv.wait_exit(30), 0, "volfxd exits 0 after deleting a cloud scene and shutting down")
 
 
+@T
+def delete_or_shut_down_while_seeding(s):
+    """A scene deleted, or the server shut down, while a change's cells are being seeded."""
+    with mock.Server(s.bin) as srv:
+        a = srv.connect()
+        b = srv.connect()
+        a.ok("scene.create", {"name": "gone"})
+        req = a.request("scene.set", {"scene": "gone", "patch": {"cloud": dict(BIG_CLOUD)}})
+        a.send(req)
+        time.sleep(0.01)
+        b.ok("scene.delete", {"name": "gone"})
+        resp, _ = a.recv_response(timeout=120)
+        code = (resp.get("error") or {}).get("code")
+        # Seeded before the delete came, or refused after: never half made.
+        s.check("result" in resp or code == mock.E_NOT_FOUND,
+                "the change is made before the delete, or refused for the missing scene",
+                mock.short(resp))
+        s.check(not any(e["name"] == "gone" for e in b.ok("scene.list")[0]["scenes"]),
+                "the scene is gone")
+        # Shut down while seeding: the server waits for the work, then exits cleanly.
+        a.ok("scene.create", {"name": "late"})
+        a.send(a.request("scene.set", {"scene": "late", "patch": {"cloud": dict(BIG_CLOUD)}}))
+        time.sleep(0.01)
+        r, _ = b.ok("server.shutdown", {})
+        s.eq(r, {"shutting_down": True}, "server.shutdown while a cloud is seeded")
+        s.eq(srv.wait_exit(60), 0, "volfxd exits 0 after shutting down during a seeding")
+
+
 if __name__ == "__main__":
     sys.exit(suite.main())
