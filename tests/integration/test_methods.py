@@ -496,6 +496,13 @@ def render_beauty(s):
     rb, _ = c.ok("render", {"scene": "r1", "width": 4, "height": 3, "format": "rgba8",
                             "encoding": "base64"})
     s.eq(len(mock.b64decode(rb.get("data", ""))), 48, "base64 rgba8 4x3 is 48 bytes")
+    # A big one (1 MiB of rgba8, encoded off the loop thread) carries the attachment's bytes.
+    _, raw256 = c.ok("render", {"scene": "r1", "width": 512, "height": 512, "format": "rgba8"})
+    rb, _ = c.ok("render", {"scene": "r1", "width": 512, "height": 512, "format": "rgba8",
+                            "encoding": "base64"})
+    s.check(mock.b64decode(rb.get("data", "")) == raw256,
+            "a 512x512 rgba8 frame as base64 is the attachment's bytes")
+    s.eq((rb.get("attachment") or {}).get("width"), 512, "and keeps attachment.width")
     # The connection is still in step after base64 results (no stray raw bytes).
     s.eq(c.ok("server.info", {})[0].get("name"), "volfxd", "connection in step after base64")
     # png_level.
