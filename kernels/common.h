@@ -2,7 +2,8 @@
  * Definitions shared by the kernels and the host renderer: the per-frame constants passed by
  * value to the objects kernel, and the layout of the object, BVH node and triangle records in
  * their float buffers. It is valid OpenCL C and valid C11, so render.c includes the same file
- * and the two sides cannot drift; device-only helpers sit under __OPENCL_VERSION__.
+ * and the two sides cannot drift; device-only helpers sit under VFX_DEVICE_CODE (OpenCL C, which
+ * every OpenCL compiler marks with __OPENCL_VERSION__ or __OPENCL_C_VERSION__).
  *
  * Coordinates. Objects are placed by world = T * Rz * Ry * Rx * S * object: scale first, then
  * the rotations about X, Y and Z in that order (degrees), then the translation. The host
@@ -152,7 +153,11 @@ typedef struct vfx_fluid {
 #define FLUID_LX 2 /* Work-group of the fluid pass, in packets. */
 #define FLUID_LY 2
 
-#ifdef __OPENCL_VERSION__
+#if defined(__OPENCL_VERSION__) || defined(__OPENCL_C_VERSION__)
+#define VFX_DEVICE_CODE 1
+#endif
+
+#ifdef VFX_DEVICE_CODE
 
 /* Moves a shadow ray's origin off its surface by this much per unit of distance from the eye,
  * plus the same amount, so rounding in the hit point cannot make a surface shadow itself. */
