@@ -11,6 +11,8 @@
 #include <sys/stat.h>
 
 #include "log.h"
+#include "scene_files.h"
+#include "seeding.h"
 #include "server.h"
 #include "worker.h"
 
@@ -125,6 +127,10 @@ int main(int argc, char **argv) {
   uv_walk(s->loop, close_any, NULL);
   uv_run(s->loop, UV_RUN_DEFAULT);
   uv_loop_close(s->loop);
+  /* Every call is answered now, so nothing pins the caches: a seeding or a failed read that
+   * finished after the scenes were removed is dropped here. */
+  seeding_prune();
+  scene_files_prune();
   LOG(LOG_INFO, "server", "stopped");
   return exit_code;
 }
