@@ -341,6 +341,98 @@ __kernel void volumes(vfx_frame_t f, vfx_shadow_t sh, __global const float *rest
            0, out + 12 * row);
 }
 
+/* ---- Volumes at a lower resolution ------------------------------------------------------- */
+
+/*
+ * With render.volume_resolution below full, the volumes kernel runs on a frame 'd' times
+ * smaller each way, over a buffer that starts transparent (so it receives the volumes' light
+ * and 1 - their transmittance), and volume_up composites that over the full frame. Low pixel
+ * (i, j) stands for full pixel (d i + d / 2, d j + d / 2): its ray is that pixel's, and so is
+ * its opaque depth, so every low pixel is exactly what the full pass gives at one full pixel,
+ * and a full pixel beside an object's edge finds low pixels of either side among the four
+ * around it.
+ *
+ * volume_depth_down: the opaque depth of low pixel (global x, global y), that of its full pixel
+ * (clamped to the frame).
+ */
+__kernel void volume_depth_down(__global const float *restrict depth, int pitch, int width,
+                                int height, int d, __global float *restrict low, int low_pitch) {
+  int x = get_global_id(0), y = get_global_id(1);
+  low[y * low_pitch + x] =
+      depth[min(y * d + d / 2, height - 1) * pitch + min(x * d + d / 2, width - 1)];
+}
+
+/*
+ * volume_up: VOL_UP_PACKET full pixels of a row per work-item, at pixel (VOL_UP_PACKET global x,
+ * global y). Each
+ * takes the volumes' light and opacity from the four low pixels around it, bilinearly where all
+ * four (those with a weight) saw about the same opaque depth as it does (within VOL_UP_DEPTH of
+ * it, relative), and otherwise from the one whose depth is nearest its own, so that a volume in
+ * front of an object's edge does not bleed across it; then composites them over what the
+ * earlier passes drew: C = (1 - A) behind + L.
+ */
+__kernel void volume_up(__global const float *restrict low, int low_pitch, int low_w, int low_h,
+                        __global const float *restrict low_depth, int d, float far_,
+                        __global const float *restrict depth, int pitch,
+                        __global float *restrict linear) {
+  int x0 = VOL_UP_PACKET * get_global_id(0), y = get_global_id(1);
+  float inv = 1.0f / d;
+  /* Low coordinates, in which low pixel i is at i (it stands for full pixel d i + d / 2); they
+   * are above -1, so truncation of one more is floor. */
+  vf u = ((float)x0 + VOL_LANES - 0.5f - (float)(d / 2)) * inv;
+  float v = ((float)y - (float)(d / 2)) * inv;
+  vi i0 = clamp(convert_vi(u + 1.0f) - 1, 0, low_w - 1), i1 = min(i0 + 1, low_w - 1);
+  int j0 = clamp((int)(v + 1.0f) - 1, 0, low_h - 1), j1 = min(j0 + 1, low_h - 1);
+  vf fx = clamp(u - convert_vf(i0), 0.0f, 1.0f);
+  float fy = clamp(v - (float)j0, 0.0f, 1.0f);
+  vi a00 = j0 * low_pitch + i0, a10 = j0 * low_pitch + i1;
+  vi a01 = j1 * low_pitch + i0, a11 = j1 * low_pitch + i1;
+  int o = y * pitch + x0;
+  vf z = fmin(vload16(0, depth + o), far_), tol = VOL_UP_DEPTH * z;
+  vf d00 = fabs(fmin(VOL_GATHER(low_depth, a00), far_) - z);
+  vf d10 = fabs(fmin(VOL_GATHER(low_depth, a10), far_) - z);
+  vf d01 = fabs(fmin(VOL_GATHER(low_depth, a01), far_) - z);
+  vf d11 = fabs(fmin(VOL_GATHER(low_depth, a11), far_) - z);
+  /* A sample with no weight need not agree. */
+  vi agree =
+      ((d00 <= tol) | (fx == 1.0f) | (fy == 1.0f)) & ((d10 <= tol) | (fx == 0.0f) | (fy == 1.0f)) &
+      ((d01 <= tol) | (fx == 1.0f) | (fy == 0.0f)) & ((d11 <= tol) | (fx == 0.0f) | (fy == 0.0f));
+  /* The nearest in depth, ties to the first. */
+  vi n10 = d10 < d00;
+  vf best = fmin(d00, d10);
+  vi n01 = d01 < best;
+  best = fmin(best, d01);
+  vi n11 = d11 < best;
+  vf c[4];
+  for (int k = 0; k < 4; k++) {
+    vf c00 = VOL_GATHER(low, 4 * a00 + k), c10 = VOL_GATHER(low, 4 * a10 + k);
+    vf c01 = VOL_GATHER(low, 4 * a01 + k), c11 = VOL_GATHER(low, 4 * a11 + k);
+    vf near = select(select(select(c00, c10, n10), c01, n01), c11, n11);
+    vf mixed = mix(mix(c00, c10, fx), mix(c01, c11, fx), fy);
+    c[k] = select(near, mixed, agree);
+  }
+  __global float *out = linear + 4 * o;
+  float16 p0 = vload16(0, out), p1 = vload16(1, out), p2 = vload16(2, out), p3 = vload16(3, out);
+  vf br = (vf)(p0.s048c, p1.s048c, p2.s048c, p3.s048c);
+  vf bg = (vf)(p0.s159d, p1.s159d, p2.s159d, p3.s159d);
+  vf bb = (vf)(p0.s26ae, p1.s26ae, p2.s26ae, p3.s26ae);
+  vf ba = (vf)(p0.s37bf, p1.s37bf, p2.s37bf, p3.s37bf);
+  vf t = 1.0f - c[3];
+  vf r = fma(t, br, c[0]), g = fma(t, bg, c[1]), b = fma(t, bb, c[2]), a = fma(t, ba, c[3]);
+  vstore16((float16)(r.s0, g.s0, b.s0, a.s0, r.s1, g.s1, b.s1, a.s1, r.s2, g.s2, b.s2, a.s2, r.s3,
+                     g.s3, b.s3, a.s3),
+           0, out);
+  vstore16((float16)(r.s4, g.s4, b.s4, a.s4, r.s5, g.s5, b.s5, a.s5, r.s6, g.s6, b.s6, a.s6, r.s7,
+                     g.s7, b.s7, a.s7),
+           1, out);
+  vstore16((float16)(r.s8, g.s8, b.s8, a.s8, r.s9, g.s9, b.s9, a.s9, r.sa, g.sa, b.sa, a.sa, r.sb,
+                     g.sb, b.sb, a.sb),
+           2, out);
+  vstore16((float16)(r.sc, g.sc, b.sc, a.sc, r.sd, g.sd, b.sd, a.sd, r.se, g.se, b.se, a.se, r.sf,
+                     g.sf, b.sf, a.sf),
+           3, out);
+}
+
 /* ---- The shadow map ---------------------------------------------------------------------- */
 
 /*

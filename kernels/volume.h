@@ -38,6 +38,14 @@
 #define VOL_SHADOW_TAPS 8
 #define VOL_SHADOW_FIRST 2
 
+/* volume_up blends the low-resolution pixels around a pixel where their opaque depths lie
+ * within this fraction of its own (kernels/volume.cl). */
+#define VOL_UP_DEPTH 0.05f
+/* Work-group of volume_depth_down, in pixels of a row. */
+#define VOL_UP_LX 16
+/* Pixels of a row per volume_up work-item (a float16). */
+#define VOL_UP_PACKET 16
+
 /* A packet stops marching once every ray lets less than this fraction through. */
 #define VOL_T_MIN (1.0f / 512.0f)
 

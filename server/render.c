@@ -323,6 +323,12 @@ static int warm_up(renderer_t *r, char *err, size_t errlen) {
     rc = renderer_render(r, &scene, &p, &out, err, errlen);
     free(out.bytes);
   }
+  if (rc == 0) { /* The low-resolution volumes pass and its two kernels. */
+    scene.volume_div = 2;
+    p.aov = AOV_BEAUTY, p.format = PROTO_FMT_RGBA8;
+    rc = renderer_render(r, &scene, &p, &out, err, errlen);
+    free(out.bytes);
+  }
   /* Drop the BVH of the stack mesh and the volume caches' grid references before they go out
    * of scope. */
   render_bvh_forget(r);

@@ -61,9 +61,11 @@ typedef struct shadow_key {
 } shadow_key_t;
 
 struct vol_state {
-  cl_kernel kvol, kshadow;
+  cl_kernel kvol, kshadow, kdown, kup;
   cl_mem recs, data, smap;
   size_t cap_recs, cap_data, cap_smap;
+  cl_mem low_depth, low_linear; /* The low-resolution pass's depth and RGBA (volume_div > 1). */
+  size_t cap_low_depth, cap_low_linear;
   vol_entry_t *ents;
   int nents;
   size_t data_floats; /* Floats uploaded to 'data'. */
@@ -691,7 +693,9 @@ int render_volume_init(renderer_t *r, char *err, size_t errlen) {
   }
   r->vol = vs;
   if ((vs->kvol = cl_dev_kernel(&r->dev, "volumes", err, errlen)) == NULL ||
-      (vs->kshadow = cl_dev_kernel(&r->dev, "shadow_map", err, errlen)) == NULL)
+      (vs->kshadow = cl_dev_kernel(&r->dev, "shadow_map", err, errlen)) == NULL ||
+      (vs->kdown = cl_dev_kernel(&r->dev, "volume_depth_down", err, errlen)) == NULL ||
+      (vs->kup = cl_dev_kernel(&r->dev, "volume_up", err, errlen)) == NULL)
     return -1;
   return 0;
 }
@@ -703,14 +707,14 @@ void render_volume_free(renderer_t *r) {
   for (int i = 0; i < vs->nents; i++)
     entry_clear(&vs->ents[i]);
   free(vs->ents);
-  cl_mem bufs[3] = {vs->recs, vs->data, vs->smap};
-  for (int i = 0; i < 3; i++)
+  cl_mem bufs[5] = {vs->recs, vs->data, vs->smap, vs->low_depth, vs->low_linear};
+  for (int i = 0; i < 5; i++)
     if (bufs[i])
       clReleaseMemObject(bufs[i]);
-  if (vs->kvol)
-    clReleaseKernel(vs->kvol);
-  if (vs->kshadow)
-    clReleaseKernel(vs->kshadow);
+  cl_kernel ks[4] = {vs->kvol, vs->kshadow, vs->kdown, vs->kup};
+  for (int i = 0; i < 4; i++)
+    if (ks[i])
+      clReleaseKernel(ks[i]);
   free(vs->host_recs);
   free(vs->skey.objs);
   free(vs->skey.bvh);
@@ -738,6 +742,116 @@ typedef struct order {
 static int by_dist(const void *a, const void *b) {
   const order_t *x = a, *y = b;
   return x->dist < y->dist ? -1 : x->dist > y->dist;
+}
+
+/* Enqueues the volumes kernel over the 'pitch' x 'rows' frame 'f' with its opaque 'depth',
+ * compositing into 'linear'. */
+static cl_int run_volumes(renderer_t *r, const vfx_frame_t *f, const vfx_shadow_t *sh, cl_int nv,
+                          cl_mem smap, cl_int spitch, cl_mem depth, cl_mem linear, size_t pitch,
+                          size_t rows, const size_t local[2]) {
+  struct vol_state *vs = r->vol;
+  cl_kernel k = vs->kvol;
+  cl_int cr = clSetKernelArg(k, 0, sizeof *f, f);
+  if (cr == CL_SUCCESS)
+    cr = clSetKernelArg(k, 1, sizeof *sh, sh);
+  if (cr == CL_SUCCESS)
+    cr = clSetKernelArg(k, 2, sizeof(cl_mem), &vs->recs);
+  if (cr == CL_SUCCESS)
+    cr = clSetKernelArg(k, 3, sizeof nv, &nv);
+  if (cr == CL_SUCCESS)
+    cr = clSetKernelArg(k, 4, sizeof(cl_mem), &vs->data);
+  if (cr == CL_SUCCESS)
+    cr = clSetKernelArg(k, 5, sizeof(cl_mem), &smap);
+  if (cr == CL_SUCCESS)
+    cr = clSetKernelArg(k, 6, sizeof spitch, &spitch);
+  if (cr == CL_SUCCESS)
+    cr = clSetKernelArg(k, 7, sizeof(cl_mem), &depth);
+  if (cr == CL_SUCCESS)
+    cr = clSetKernelArg(k, 8, sizeof(cl_mem), &linear);
+  size_t global[2] = {pitch / VOL_PACKET_W, rows / VOL_PACKET_H};
+  if (cr == CL_SUCCESS)
+    cr = clEnqueueNDRangeKernel(r->dev.queue, k, 2, NULL, global, local, 0, NULL, NULL);
+  return cr;
+}
+
+/*
+ * The volumes pass at 1/d of the frame's width and height (render.volume_resolution): the
+ * opaque depth brought down (volume_depth_down), the volumes kernel on a frame of wider pixels
+ * over a transparent buffer, and the result composited over the full frame (volume_up).
+ */
+static cl_int run_low_volumes(renderer_t *r, int d, const vfx_shadow_t *sh, cl_int nv, cl_mem smap,
+                              cl_int spitch, const size_t local[2], char *err, size_t errlen) {
+  struct vol_state *vs = r->vol;
+  vfx_frame_t f = r->frame;
+  cl_int lw = (f.width + d - 1) / d, lh = (f.height + d - 1) / d;
+  size_t lp = round_up((size_t)lw, local[0] * VOL_PACKET_W),
+         lr = round_up((size_t)lh, local[1] * VOL_PACKET_H);
+  if (render_ensure_buffer(r, &vs->low_depth, &vs->cap_low_depth, lp * lr, sizeof(float),
+                           CL_MEM_READ_WRITE, 0, err, errlen) ||
+      render_ensure_buffer(r, &vs->low_linear, &vs->cap_low_linear, lp * lr, 4 * sizeof(float),
+                           CL_MEM_READ_WRITE, 0, err, errlen))
+    return CL_OUT_OF_RESOURCES;
+  cl_int pitch = (cl_int)r->pitch, clp = (cl_int)lp, cd = d;
+  size_t wg[2] = {VOL_UP_LX, 1}, down[2] = {lp, lr};
+  /* volume_up in the objects pass's work-groups, whose pixels the pitch and rows are whole
+   * multiples of. */
+  size_t up[2] = {r->pitch / VOL_UP_PACKET, r->rows},
+         up_wg[2] = {r->objects_local[0], r->objects_local[1] ? r->objects_local[1] : 1};
+  cl_kernel k = vs->kdown;
+  cl_int cr = clSetKernelArg(k, 0, sizeof(cl_mem), &r->depth);
+  if (cr == CL_SUCCESS)
+    cr = clSetKernelArg(k, 1, sizeof pitch, &pitch);
+  if (cr == CL_SUCCESS)
+    cr = clSetKernelArg(k, 2, sizeof f.width, &f.width);
+  if (cr == CL_SUCCESS)
+    cr = clSetKernelArg(k, 3, sizeof f.height, &f.height);
+  if (cr == CL_SUCCESS)
+    cr = clSetKernelArg(k, 4, sizeof cd, &cd);
+  if (cr == CL_SUCCESS)
+    cr = clSetKernelArg(k, 5, sizeof(cl_mem), &vs->low_depth);
+  if (cr == CL_SUCCESS)
+    cr = clSetKernelArg(k, 6, sizeof clp, &clp);
+  if (cr == CL_SUCCESS)
+    cr = clEnqueueNDRangeKernel(r->dev.queue, k, 2, NULL, down, wg, 0, NULL, NULL);
+  const float clear = 0.0f;
+  if (cr == CL_SUCCESS)
+    cr = clEnqueueFillBuffer(r->dev.queue, vs->low_linear, &clear, sizeof clear, 0,
+                             lp * lr * 4 * sizeof(float), 0, NULL, NULL);
+  /* Pixel (x, y) of the low frame looks through the centre of full pixel (d x + d / 2,
+   * d y + d / 2), (d x + d / 2 + 0.5, ...) of the image plane, where the kernel puts it at
+   * (x + 0.5) d of steps d times longer from a base moved by half a step. */
+  f.width = lw, f.height = lh, f.pitch = clp;
+  for (int i = 0; i < 3; i++) {
+    f.base[i] += (float)(d / 2 + 0.5 - 0.5 * d) * (f.step_x[i] + f.step_y[i]);
+    f.step_x[i] *= (float)d, f.step_y[i] *= (float)d;
+  }
+  if (cr == CL_SUCCESS)
+    cr = run_volumes(r, &f, sh, nv, smap, spitch, vs->low_depth, vs->low_linear, lp, lr, local);
+  k = vs->kup;
+  float far_ = r->frame.far_;
+  if (cr == CL_SUCCESS)
+    cr = clSetKernelArg(k, 0, sizeof(cl_mem), &vs->low_linear);
+  if (cr == CL_SUCCESS)
+    cr = clSetKernelArg(k, 1, sizeof clp, &clp);
+  if (cr == CL_SUCCESS)
+    cr = clSetKernelArg(k, 2, sizeof lw, &lw);
+  if (cr == CL_SUCCESS)
+    cr = clSetKernelArg(k, 3, sizeof lh, &lh);
+  if (cr == CL_SUCCESS)
+    cr = clSetKernelArg(k, 4, sizeof(cl_mem), &vs->low_depth);
+  if (cr == CL_SUCCESS)
+    cr = clSetKernelArg(k, 5, sizeof cd, &cd);
+  if (cr == CL_SUCCESS)
+    cr = clSetKernelArg(k, 6, sizeof far_, &far_);
+  if (cr == CL_SUCCESS)
+    cr = clSetKernelArg(k, 7, sizeof(cl_mem), &r->depth);
+  if (cr == CL_SUCCESS)
+    cr = clSetKernelArg(k, 8, sizeof pitch, &pitch);
+  if (cr == CL_SUCCESS)
+    cr = clSetKernelArg(k, 9, sizeof(cl_mem), &r->linear);
+  if (cr == CL_SUCCESS)
+    cr = clEnqueueNDRangeKernel(r->dev.queue, k, 2, NULL, up, up_wg, 0, NULL, NULL);
+  return cr;
 }
 
 int render_pass_volumes(renderer_t *r, const render_scene_t *scene, unsigned layers, int *ran,
@@ -895,33 +1009,18 @@ int render_pass_volumes(renderer_t *r, const render_scene_t *scene, unsigned lay
       goto done;
   }
   cl_mem smap = sh.enabled ? vs->smap : vs->data;
-  cl_int spitch = sh.enabled ? vs->smap_pitch : 0, nv = nd;
-  cl_kernel k = vs->kvol;
-  cr = clSetKernelArg(k, 0, sizeof r->frame, &r->frame);
-  if (cr == CL_SUCCESS)
-    cr = clSetKernelArg(k, 1, sizeof sh, &sh);
-  if (cr == CL_SUCCESS)
-    cr = clSetKernelArg(k, 2, sizeof(cl_mem), &vs->recs);
-  if (cr == CL_SUCCESS)
-    cr = clSetKernelArg(k, 3, sizeof nv, &nv);
-  if (cr == CL_SUCCESS)
-    cr = clSetKernelArg(k, 4, sizeof(cl_mem), &vs->data);
-  if (cr == CL_SUCCESS)
-    cr = clSetKernelArg(k, 5, sizeof(cl_mem), &smap);
-  if (cr == CL_SUCCESS)
-    cr = clSetKernelArg(k, 6, sizeof spitch, &spitch);
-  if (cr == CL_SUCCESS)
-    cr = clSetKernelArg(k, 7, sizeof(cl_mem), &r->depth);
-  if (cr == CL_SUCCESS)
-    cr = clSetKernelArg(k, 8, sizeof(cl_mem), &r->linear);
-  size_t global[2] = {r->pitch / VOL_PACKET_W, r->rows / VOL_PACKET_H};
+  cl_int spitch = sh.enabled ? vs->smap_pitch : 0;
   /* The objects work-group's pixels, or fewer if the device shrank it below one packet. */
   size_t local[2] = {r->objects_local[0] * PACKET / VOL_PACKET_W,
                      r->objects_local[1] / VOL_PACKET_H};
   if (local[1] == 0)
     local[1] = 1;
-  if (cr == CL_SUCCESS)
-    cr = clEnqueueNDRangeKernel(r->dev.queue, k, 2, NULL, global, local, 0, NULL, NULL);
+  int d = scene->volume_div > 1 ? scene->volume_div : 1;
+  if (d == 1)
+    cr = run_volumes(r, &r->frame, &sh, nd, smap, spitch, r->depth, r->linear, r->pitch, r->rows,
+                     local);
+  else
+    cr = run_low_volumes(r, d, &sh, nd, smap, spitch, local, err, errlen);
   if (cr == CL_SUCCESS)
     cr = clFinish(r->dev.queue);
   if (cr != CL_SUCCESS) {

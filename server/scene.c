@@ -738,6 +738,8 @@ static render_scene_t *compile(const cJSON *doc, particles_t *particles, density
   const cJSON *render = get(doc, "render");
   rs->exposure = (float)get(render, "exposure")->valuedouble;
   rs->tone_map = tone_map_of(get(render, "tone_map")->valuestring);
+  const char *vres = get(render, "volume_resolution")->valuestring;
+  rs->volume_div = strcmp(vres, "half") == 0 ? 2 : strcmp(vres, "quarter") == 0 ? 4 : 1;
   rs->transparent_background = cJSON_IsTrue(get(render, "transparent_background"));
 
   const cJSON *sim = get(doc, "sim");

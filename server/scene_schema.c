@@ -27,6 +27,7 @@ static const double obj_color[3] = {0.8, 0.8, 0.8};
 
 static const char *const shapes[] = {"box", "sphere", "tetrahedron", "plane", "mesh", NULL};
 static const char *const tone_maps[] = {"none", "reinhard", "aces", NULL};
+static const char *const volume_resolutions[] = {"full", "half", "quarter", NULL};
 
 static const sch_field_t camera_fields[] = {
     {.name = "eye",
@@ -389,6 +390,14 @@ static const sch_field_t render_fields[] = {
     {.name = "transparent_background",
      .type = SCH_BOOL,
      .desc = "Give background pixels alpha 0 instead of 1, for compositing."},
+    {.name = "volume_resolution",
+     .type = SCH_ENUM,
+     .desc = "Resolution of the volumes pass (volumes and the cloud): full, or half or a quarter "
+             "of the frame's width and height, composited over the full frame with the opaque "
+             "depth deciding which low-resolution pixels each pixel takes: 4 or 16 times fewer "
+             "rays, softer shafts.",
+     .def_str = "full",
+     .enum_values = volume_resolutions},
     {0},
 };
 

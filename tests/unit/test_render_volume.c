@@ -170,6 +170,96 @@ static void test_transmittance(void) {
   free_grid(g);
 }
 
+/*
+ * render.volume_resolution below full: the box inside the homogeneous volume of
+ * test_transmittance, its volumes pass at half and a quarter of the frame's size, against the
+ * exact transmittance of each full pixel's own ray. Away from the box's silhouette the low
+ * pixels blend smoothly into the exact values; next to it each pixel takes the low pixels that
+ * saw its own depth, so the box's edge pixels show the box through the fog before it, not the
+ * fog beside it.
+ */
+static void test_low_resolution(void) {
+  density_grid_t *g = make_grid(1, 1, 1);
+  g->data[0] = 1;
+  rvolume_t v = {.source = VOLUME_GRID,
+                 .min = {-1, -0.5f, -1.2f},
+                 .max = {1.3f, 1.5f, 0.8f},
+                 .density = 0.9f,
+                 .samples = 7,
+                 .grid = g};
+  robject_t box = {.shape = SHAPE_BOX,
+                   .position = {0.2f, 0.4f, -0.1f},
+                   .scale = {0.8f, 0.7f, 0.9f},
+                   .color = {0.6f, 0.6f, 0.6f}};
+  render_scene_t s = bare_scene(oblique);
+  s.background[0] = s.background[1] = s.background[2] = 1;
+  s.volumes = &v, s.nvolumes = 1;
+  s.objects = &box, s.nobjects = 1;
+  s.light.intensity = 0;
+  s.light.ambient = 1;
+  const int w = 96, h = 80;
+  double lo[3], hi[3], blo[3], bhi[3];
+  for (int k = 0; k < 3; k++) {
+    lo[k] = v.min[k], hi[k] = v.max[k];
+    blo[k] = box.position[k] - 0.5 * box.scale[k], bhi[k] = box.position[k] + 0.5 * box.scale[k];
+  }
+  /* The exact image, which pixels are on the box, and which see the fog. */
+  double *want = malloc(sizeof(double) * w * h);
+  int *on = malloc(sizeof(int) * w * h), *fog = malloc(sizeof(int) * w * h);
+  for (int y = 0; y < h; y++)
+    for (int x = 0; x < w; x++) {
+      ray_t ray = pixel_ray(&s.camera, w, h, x, y);
+      double t0, t1, b0, b1, end = INFINITY, behind = 1;
+      on[y * w + x] = slab(&ray, blo, bhi, &b0, &b1);
+      fog[y * w + x] = slab(&ray, lo, hi, &t0, &t1);
+      if (on[y * w + x])
+        end = b0, behind = box.color[0];
+      want[y * w + x] = behind;
+      if (fog[y * w + x] && t0 < end)
+        want[y * w + x] = behind * exp(-v.density * (fmin(t1, end) - t0));
+    }
+  for (int div = 2; div <= 4; div *= 2) {
+    s.volume_div = div;
+    float *img = render_f32(&s, w, h, LAYER_ALL);
+    CHECK(img != NULL, "render at 1/%d failed", div);
+    /* Each pixel's value must lie within the exact values of the pixels around it (within
+     * div + 1) that are of its kind, on the box or off it, give or take 'slack': a blend of
+     * its neighbours, never of the fog beside the box for a pixel on it, or the reverse. */
+    const double slack = 0.02;
+    double worst = 0, edge = 0;
+    int nedge = 0;
+    for (int y = 0; img && y < h; y++)
+      for (int x = 0; x < w; x++) {
+        int i = y * w + x, r = div + 1, box_edge = 0;
+        double lo_w = INFINITY, hi_w = -INFINITY;
+        for (int dy = -r; dy <= r; dy++)
+          for (int dx = -r; dx <= r; dx++) {
+            int xx = x + dx, yy = y + dy, n = yy * w + xx;
+            if (xx < 0 || yy < 0 || xx >= w || yy >= h)
+              continue;
+            box_edge |= on[n] != on[i];
+            if (on[n] == on[i])
+              lo_w = fmin(lo_w, want[n]), hi_w = fmax(hi_w, want[n]);
+          }
+        double got = img[4 * i], out = fmax(lo_w - got, got - hi_w);
+        CHECK(out <= slack, "1/%d: pixel (%d, %d) %s: %.4f outside its kind's %.4f..%.4f", div, x,
+              y, on[i] ? "on the box" : "off it", got, lo_w, hi_w);
+        worst = fmax(worst, out);
+        if (box_edge)
+          edge = fmax(edge, fabs(got - want[i])), nedge++;
+      }
+    CHECK(nedge > 20, "1/%d: only %d pixels beside the box's edge", div, nedge);
+    printf("volumes at 1/%d: at most %.4f outside the neighbours' range; %.4f from the exact value "
+           "beside the box's edge (%d pixels)\n",
+           div, worst, edge, nedge);
+    free(img);
+  }
+  free(want);
+  free(on);
+  free(fog);
+  free_grid(g);
+}
+
 /* A plate cutting a homogeneous volume at a grazing angle, ambient light only. */
 static void test_no_stripes(void) {
   density_grid_t *g = make_grid(1, 1, 1);
@@ -625,6 +715,7 @@ int main(void) {
   test_transmittance();
   test_no_stripes();
   test_shadow();
+  test_low_resolution();
   test_grid_reference();
   test_light_sweep_threads();
   test_noise();
