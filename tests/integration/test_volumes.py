@@ -183,6 +183,34 @@ def preset(s):
 
 
 @T
+def low_resolution(s):
+    """render.volume_resolution: the paper-002 scene with its volumes pass at half and a quarter
+    of the frame's size looks like the full pass, within a few levels on average."""
+    c = s.srv.connect()
+    with open(os.path.join(ROOT, "scenes", "paper-002.json")) as f:
+        doc = mock.loads(f.read())
+    fresh(c, "lo")
+    c.ok("scene.set", {"scene": "lo", "patch": doc})
+    s.eq(c.ok("scene.get", {"scene": "lo", "path": "render.volume_resolution"})[0], "full",
+         "volume_resolution defaults to full")
+    params = {"scene": "lo", "width": 160, "height": 160, "format": "rgba8"}
+    _, full = c.ok("render", params, timeout=120)
+    for res in ("half", "quarter"):
+        c.ok("scene.set", {"scene": "lo", "path": "render.volume_resolution", "value": res})
+        r, img = c.ok("render", params, timeout=120)
+        s.check("volumes" in (r.get("work_ms") or {}), "%s: a volumes pass" % res)
+        diff = [abs(a - b) for a, b in zip(full, img)]
+        mean = sum(diff) / max(len(diff), 1)
+        s.check(img != full and mean < 4, "%s: the image differs from the full pass by %.2f "
+                "levels on average" % (res, mean))
+    expect_error(s, c, "scene.set", {"scene": "lo", "path": "render.volume_resolution",
+                                     "value": "eighth"}, E_PARAMS, "render.volume_resolution",
+                 "an unknown volume_resolution")
+    s.eq(c.ok("scene.get", {"scene": "lo", "path": "render.volume_resolution"})[0], "quarter",
+         "the refused value left the setting")
+
+
+@T
 def discover(s):
     c = s.srv.connect()
     doc = c.ok("rpc.discover", {})[0]
