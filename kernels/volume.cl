@@ -385,14 +385,43 @@ __kernel void volume_up(__global const float *restrict low, int low_pitch, int l
   int j0 = clamp((int)(v + 1.0f) - 1, 0, low_h - 1), j1 = min(j0 + 1, low_h - 1);
   vf fx = clamp(u - convert_vf(i0), 0.0f, 1.0f);
   float fy = clamp(v - (float)j0, 0.0f, 1.0f);
-  vi a00 = j0 * low_pitch + i0, a10 = j0 * low_pitch + i1;
-  vi a01 = j1 * low_pitch + i0, a11 = j1 * low_pitch + i1;
+  /* The four low pixels around each lane: depth, then R, G, B and A (1 - transmittance). */
+  vf q00[5], q10[5], q01[5], q11[5];
+  int first = x0 / d - 1, span = d == 2 ? 9 : 5;
+  if ((d == 2 || d == 4) && first >= 0 && first + span <= low_w - 1) {
+    /* No lane is clamped: the packet's low pixels are first .. first + span of rows j0 and j1,
+     * loaded whole and handed to the lanes by fixed swizzles, instead of twenty gathers. */
+    for (int r = 0; r < 2; r++) {
+      int row = (r ? j1 : j0) * low_pitch + first;
+      __global const float *p = low + 4 * row;
+      float16 p0 = vload16(0, p), p1 = vload16(1, p), p2 = vload16(2, p), p3 = vload16(3, p);
+      vf w[5] = {vload16(0, low_depth + row), (vf)(p0.s048c, p1.s048c, p2.s048c, p3.s048c),
+                 (vf)(p0.s159d, p1.s159d, p2.s159d, p3.s159d),
+                 (vf)(p0.s26ae, p1.s26ae, p2.s26ae, p3.s26ae),
+                 (vf)(p0.s37bf, p1.s37bf, p2.s37bf, p3.s37bf)};
+      for (int k = 0; k < 5; k++) {
+        vf at0 = d == 2 ? w[k].s0112233445566778 : w[k].s0011112222333344;
+        vf at1 = d == 2 ? w[k].s1223344556677889 : w[k].s1122223333444455;
+        if (r)
+          q01[k] = at0, q11[k] = at1;
+        else
+          q00[k] = at0, q10[k] = at1;
+      }
+    }
+  } else {
+    vi a00 = j0 * low_pitch + i0, a10 = j0 * low_pitch + i1;
+    vi a01 = j1 * low_pitch + i0, a11 = j1 * low_pitch + i1;
+    q00[0] = VOL_GATHER(low_depth, a00), q10[0] = VOL_GATHER(low_depth, a10);
+    q01[0] = VOL_GATHER(low_depth, a01), q11[0] = VOL_GATHER(low_depth, a11);
+    for (int k = 0; k < 4; k++) {
+      q00[k + 1] = VOL_GATHER(low, 4 * a00 + k), q10[k + 1] = VOL_GATHER(low, 4 * a10 + k);
+      q01[k + 1] = VOL_GATHER(low, 4 * a01 + k), q11[k + 1] = VOL_GATHER(low, 4 * a11 + k);
+    }
+  }
   int o = y * pitch + x0;
   vf z = fmin(vload16(0, depth + o), far_), tol = VOL_UP_DEPTH * z;
-  vf d00 = fabs(fmin(VOL_GATHER(low_depth, a00), far_) - z);
-  vf d10 = fabs(fmin(VOL_GATHER(low_depth, a10), far_) - z);
-  vf d01 = fabs(fmin(VOL_GATHER(low_depth, a01), far_) - z);
-  vf d11 = fabs(fmin(VOL_GATHER(low_depth, a11), far_) - z);
+  vf d00 = fabs(fmin(q00[0], far_) - z), d10 = fabs(fmin(q10[0], far_) - z);
+  vf d01 = fabs(fmin(q01[0], far_) - z), d11 = fabs(fmin(q11[0], far_) - z);
   /* A sample with no weight need not agree. */
   vi agree =
       ((d00 <= tol) | (fx == 1.0f) | (fy == 1.0f)) & ((d10 <= tol) | (fx == 0.0f) | (fy == 1.0f)) &
@@ -405,8 +434,7 @@ __kernel void volume_up(__global const float *restrict low, int low_pitch, int l
   vi n11 = d11 < best;
   vf c[4];
   for (int k = 0; k < 4; k++) {
-    vf c00 = VOL_GATHER(low, 4 * a00 + k), c10 = VOL_GATHER(low, 4 * a10 + k);
-    vf c01 = VOL_GATHER(low, 4 * a01 + k), c11 = VOL_GATHER(low, 4 * a11 + k);
+    vf c00 = q00[k + 1], c10 = q10[k + 1], c01 = q01[k + 1], c11 = q11[k + 1];
     vf near = select(select(select(c00, c10, n10), c01, n01), c11, n11);
     vf mixed = mix(mix(c00, c10, fx), mix(c01, c11, fx), fy);
     c[k] = select(near, mixed, agree);

@@ -786,9 +786,11 @@ static cl_int run_low_volumes(renderer_t *r, int d, const vfx_shadow_t *sh, cl_i
   cl_int lw = (f.width + d - 1) / d, lh = (f.height + d - 1) / d;
   size_t lp = round_up((size_t)lw, local[0] * VOL_PACKET_W),
          lr = round_up((size_t)lh, local[1] * VOL_PACKET_H);
-  if (render_ensure_buffer(r, &vs->low_depth, &vs->cap_low_depth, lp * lr, sizeof(float),
+  /* A row's worth of slack: volume_up loads sixteen low pixels from a packet's first. */
+  size_t lpix = lp * lr + VOL_UP_PACKET;
+  if (render_ensure_buffer(r, &vs->low_depth, &vs->cap_low_depth, lpix, sizeof(float),
                            CL_MEM_READ_WRITE, 0, err, errlen) ||
-      render_ensure_buffer(r, &vs->low_linear, &vs->cap_low_linear, lp * lr, 4 * sizeof(float),
+      render_ensure_buffer(r, &vs->low_linear, &vs->cap_low_linear, lpix, 4 * sizeof(float),
                            CL_MEM_READ_WRITE, 0, err, errlen))
     return CL_OUT_OF_RESOURCES;
   cl_int pitch = (cl_int)r->pitch, clp = (cl_int)lp, cd = d;
@@ -816,7 +818,7 @@ static cl_int run_low_volumes(renderer_t *r, int d, const vfx_shadow_t *sh, cl_i
   const float clear = 0.0f;
   if (cr == CL_SUCCESS)
     cr = clEnqueueFillBuffer(r->dev.queue, vs->low_linear, &clear, sizeof clear, 0,
-                             lp * lr * 4 * sizeof(float), 0, NULL, NULL);
+                             lpix * 4 * sizeof(float), 0, NULL, NULL);
   /* Pixel (x, y) of the low frame looks through the centre of full pixel (d x + d / 2,
    * d y + d / 2), (d x + d / 2 + 0.5, ...) of the image plane, where the kernel puts it at
    * (x + 0.5) d of steps d times longer from a base moved by half a step. */

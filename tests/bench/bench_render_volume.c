@@ -348,10 +348,11 @@ int main(int argc, char **argv) {
          "| %.1f | |\n",
          1000 / first_ms, first_ms, first_vol);
   for (int q = 0; q < 2; q++)
-    printf("| same, volumes pass at %s resolution (%d² rays) | 1024² | 32 | | %.1f (%.1f) | %.2fx | "
-           "%.1f | %.0f |\n",
-           q ? "quarter" : "half", 1024 >> (q + 1), 1000 / low_ms[q], low_ms[q],
-           1000 / low_ms[q] / 43, low_vol[q], low_cpu[q]);
+    printf(
+        "| same, volumes pass at %s resolution (%d² rays) | 1024² | 32 | | %.1f (%.1f) | %.2fx | "
+        "%.1f | %.0f |\n",
+        q ? "quarter" : "half", 1024 >> (q + 1), 1000 / low_ms[q], low_ms[q], 1000 / low_ms[q] / 43,
+        low_vol[q], low_cpu[q]);
   for (int c = 0; c < 2; c++) {
     printf("| cloud grid %u³, new every frame | 512² | 64 | | %.1f (%.1f) | | %.1f | %.0f |\n",
            sides[c], 1000 / cloud_ms[c], cloud_ms[c], cloud_vol[c], cloud_cpu[c]);
