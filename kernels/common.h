@@ -187,11 +187,11 @@ static inline float lanes_fmin(float16 v) {
 
 /*
  * Sixteen lines from per-lane origins (ox, oy, oz) along one shared direction d (shadow rays,
- * and the lines of the shadow map), as the mesh traversals of objects.cl and volume.cl walk
- * them. node_span16: the distances along d inside the box of BVH node 'n' (its lower corner,
- * then its upper), [*lo, *hi], empty where *lo > *hi; (ix, iy, iz) is 1 / d, and fmin / fmax
- * drop the NaN of 0 * inf, which leaves that axis unbounded. tri_line16: the distance along d
- * of the plane of triangle 'tr' (a vertex, then two edges), any sign, with the lanes whose
+ * and the lines of the shadow map), as objects.cl and volume.cl test them against convex
+ * objects and walk the mesh BVH. node_span16: the distances along d inside the box of BVH node 'n'
+ * (its lower corner, then its upper), [*lo, *hi], empty where *lo > *hi; (ix, iy, iz) is 1 / d, and
+ * fmin / fmax drop the NaN of 0 * inf, which leaves that axis unbounded. tri_line16: the distance
+ * along d of the plane of triangle 'tr' (a vertex, then two edges), any sign, with the lanes whose
  * line crosses the triangle in '*inside' (Moller-Trumbore, double-sided; the terms in d alone
  * are scalars, and a degenerate triangle gives NaNs, which fail every comparison).
  */
@@ -202,6 +202,29 @@ static inline void node_span16(__global const float *n, float16 ox, float16 oy, 
   float16 t0z = (n[2] - oz) * iz, t1z = (n[5] - oz) * iz;
   *lo = fmax(fmax(fmin(t0x, t1x), fmin(t0y, t1y)), fmin(t0z, t1z));
   *hi = fmin(fmin(fmax(t0x, t1x), fmax(t0y, t1y)), fmax(t0z, t1z));
+}
+
+/* convex_span16: the distances along d inside the convex record 'c' (CONV_NPLANES planes
+ * n.x <= w, outward normals): [*tin, *tout], empty where *tin > *tout; returns the lanes whose
+ * line runs parallel to a plane outside it, which miss whatever the span says. */
+static inline int16 convex_span16(__global const float *c, float16 ox, float16 oy, float16 oz,
+                                  float dx, float dy, float dz, float16 *tin, float16 *tout) {
+  int16 miss = 0;
+  *tin = -INFINITY, *tout = INFINITY;
+  int np = as_int(c[CONV_NPLANES]);
+  for (int k = 0; k < np; k++) {
+    float pnx = c[4 * k], pny = c[4 * k + 1], pnz = c[4 * k + 2];
+    float den = pnx * dx + pny * dy + pnz * dz;
+    float16 num = c[4 * k + 3] - (pnx * ox + pny * oy + pnz * oz);
+    float16 t = num / den;
+    if (den < 0.0f)
+      *tin = fmax(*tin, t);
+    else if (den > 0.0f)
+      *tout = fmin(*tout, t);
+    else
+      miss |= num < 0.0f;
+  }
+  return miss;
 }
 
 static inline float16 tri_line16(__global const float *tr, float16 ox, float16 oy, float16 oz,

@@ -311,21 +311,8 @@ __kernel void objects(vfx_frame_t f, __global const float *restrict objs,
     __global const float *bs = c + CONV_BOUND;
     if (!any(lit & may_block(bs[0] - sx, bs[1] - sy, bs[2] - sz, bs[3], lx, ly, lz)))
       continue;
-    floatv tin = -INFINITY, tout = INFINITY;
-    intv miss = 0;
-    int np = as_int(c[CONV_NPLANES]);
-    for (int k = 0; k < np; k++) {
-      float pnx = c[4 * k], pny = c[4 * k + 1], pnz = c[4 * k + 2];
-      float den = pnx * lx + pny * ly + pnz * lz;
-      floatv num = c[4 * k + 3] - (pnx * sx + pny * sy + pnz * sz);
-      floatv t = num / den;
-      if (den < 0.0f)
-        tin = fmax(tin, t);
-      else if (den > 0.0f)
-        tout = fmin(tout, t);
-      else
-        miss |= num < 0.0f;
-    }
+    floatv tin, tout;
+    intv miss = convex_span16(c, sx, sy, sz, lx, ly, lz, &tin, &tout);
     lit &= ~(~miss & (tin <= tout) & (tout > 0.0f));
   }
   if (f.ntri > 0 && any(lit))

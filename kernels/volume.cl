@@ -195,6 +195,26 @@ static inline vf vol_shadow(__global const float *restrict smap, int pitch, cons
   return sum * (1.0f / VOL_SHADOW_TAPS);
 }
 
+/* Sixteen RGBA pixels held as four float16 of four pixels each (q[0] the first four), split
+ * into one float16 per channel, and joined back. */
+static inline void vol_split(const float16 q[4], vf *r, vf *g, vf *b, vf *a) {
+  *r = (vf)(q[0].s048c, q[1].s048c, q[2].s048c, q[3].s048c);
+  *g = (vf)(q[0].s159d, q[1].s159d, q[2].s159d, q[3].s159d);
+  *b = (vf)(q[0].s26ae, q[1].s26ae, q[2].s26ae, q[3].s26ae);
+  *a = (vf)(q[0].s37bf, q[1].s37bf, q[2].s37bf, q[3].s37bf);
+}
+
+static inline void vol_join(vf r, vf g, vf b, vf a, float16 q[4]) {
+  q[0] = (float16)(r.s0, g.s0, b.s0, a.s0, r.s1, g.s1, b.s1, a.s1, r.s2, g.s2, b.s2, a.s2, r.s3,
+                   g.s3, b.s3, a.s3);
+  q[1] = (float16)(r.s4, g.s4, b.s4, a.s4, r.s5, g.s5, b.s5, a.s5, r.s6, g.s6, b.s6, a.s6, r.s7,
+                   g.s7, b.s7, a.s7);
+  q[2] = (float16)(r.s8, g.s8, b.s8, a.s8, r.s9, g.s9, b.s9, a.s9, r.sa, g.sa, b.sa, a.sa, r.sb,
+                   g.sb, b.sb, a.sb);
+  q[3] = (float16)(r.sc, g.sc, b.sc, a.sc, r.sd, g.sd, b.sd, a.sd, r.se, g.se, b.se, a.se, r.sf,
+                   g.sf, b.sf, a.sf);
+}
+
 /*
  * One packet of 4 x 4 pixels per work-item, its top left pixel at (4 global x, 4 global y),
  * over the padded buffers of the frame 'f' that the objects pass set up. 'vols' holds 'nvol'
@@ -319,26 +339,13 @@ __kernel void volumes(vfx_frame_t f, vfx_shadow_t sh, __global const float *rest
 
   /* Over what the earlier passes drew (eq. 9): C = T * behind + the volume's light. */
   __global float *out = linear + 4 * o;
-  float16 p0 = vload16(0, out), p1 = vload16(0, out + 4 * row);
-  float16 p2 = vload16(0, out + 8 * row), p3 = vload16(0, out + 12 * row);
-  vf br = (vf)(p0.s048c, p1.s048c, p2.s048c, p3.s048c);
-  vf bg = (vf)(p0.s159d, p1.s159d, p2.s159d, p3.s159d);
-  vf bb = (vf)(p0.s26ae, p1.s26ae, p2.s26ae, p3.s26ae);
-  vf ba = (vf)(p0.s37bf, p1.s37bf, p2.s37bf, p3.s37bf);
-  vf r = fma(tr, br, cr), gg = fma(tr, bg, cg), b = fma(tr, bb, cb);
-  vf a = fma(tr, ba, 1.0f - tr);
-  vstore16((float16)(r.s0, gg.s0, b.s0, a.s0, r.s1, gg.s1, b.s1, a.s1, r.s2, gg.s2, b.s2, a.s2,
-                     r.s3, gg.s3, b.s3, a.s3),
-           0, out);
-  vstore16((float16)(r.s4, gg.s4, b.s4, a.s4, r.s5, gg.s5, b.s5, a.s5, r.s6, gg.s6, b.s6, a.s6,
-                     r.s7, gg.s7, b.s7, a.s7),
-           0, out + 4 * row);
-  vstore16((float16)(r.s8, gg.s8, b.s8, a.s8, r.s9, gg.s9, b.s9, a.s9, r.sa, gg.sa, b.sa, a.sa,
-                     r.sb, gg.sb, b.sb, a.sb),
-           0, out + 8 * row);
-  vstore16((float16)(r.sc, gg.sc, b.sc, a.sc, r.sd, gg.sd, b.sd, a.sd, r.se, gg.se, b.se, a.se,
-                     r.sf, gg.sf, b.sf, a.sf),
-           0, out + 12 * row);
+  float16 q[4] = {vload16(0, out), vload16(0, out + 4 * row), vload16(0, out + 8 * row),
+                  vload16(0, out + 12 * row)};
+  vf br, bg, bb, ba;
+  vol_split(q, &br, &bg, &bb, &ba);
+  vol_join(fma(tr, br, cr), fma(tr, bg, cg), fma(tr, bb, cb), fma(tr, ba, 1.0f - tr), q);
+  for (int k = 0; k < 4; k++)
+    vstore16(q[k], 0, out + 4 * k * row);
 }
 
 /* ---- Volumes at a lower resolution ------------------------------------------------------- */
@@ -394,11 +401,10 @@ __kernel void volume_up(__global const float *restrict low, int low_pitch, int l
     for (int r = 0; r < 2; r++) {
       int row = (r ? j1 : j0) * low_pitch + first;
       __global const float *p = low + 4 * row;
-      float16 p0 = vload16(0, p), p1 = vload16(1, p), p2 = vload16(2, p), p3 = vload16(3, p);
-      vf w[5] = {vload16(0, low_depth + row), (vf)(p0.s048c, p1.s048c, p2.s048c, p3.s048c),
-                 (vf)(p0.s159d, p1.s159d, p2.s159d, p3.s159d),
-                 (vf)(p0.s26ae, p1.s26ae, p2.s26ae, p3.s26ae),
-                 (vf)(p0.s37bf, p1.s37bf, p2.s37bf, p3.s37bf)};
+      float16 q[4] = {vload16(0, p), vload16(1, p), vload16(2, p), vload16(3, p)};
+      vf w[5];
+      w[0] = vload16(0, low_depth + row);
+      vol_split(q, &w[1], &w[2], &w[3], &w[4]);
       for (int k = 0; k < 5; k++) {
         vf at0 = d == 2 ? w[k].s0112233445566778 : w[k].s0011112222333344;
         vf at1 = d == 2 ? w[k].s1223344556677889 : w[k].s1122223333444455;
@@ -440,25 +446,13 @@ __kernel void volume_up(__global const float *restrict low, int low_pitch, int l
     c[k] = select(near, mixed, agree);
   }
   __global float *out = linear + 4 * o;
-  float16 p0 = vload16(0, out), p1 = vload16(1, out), p2 = vload16(2, out), p3 = vload16(3, out);
-  vf br = (vf)(p0.s048c, p1.s048c, p2.s048c, p3.s048c);
-  vf bg = (vf)(p0.s159d, p1.s159d, p2.s159d, p3.s159d);
-  vf bb = (vf)(p0.s26ae, p1.s26ae, p2.s26ae, p3.s26ae);
-  vf ba = (vf)(p0.s37bf, p1.s37bf, p2.s37bf, p3.s37bf);
+  float16 q[4] = {vload16(0, out), vload16(1, out), vload16(2, out), vload16(3, out)};
+  vf br, bg, bb, ba;
+  vol_split(q, &br, &bg, &bb, &ba);
   vf t = 1.0f - c[3];
-  vf r = fma(t, br, c[0]), g = fma(t, bg, c[1]), b = fma(t, bb, c[2]), a = fma(t, ba, c[3]);
-  vstore16((float16)(r.s0, g.s0, b.s0, a.s0, r.s1, g.s1, b.s1, a.s1, r.s2, g.s2, b.s2, a.s2, r.s3,
-                     g.s3, b.s3, a.s3),
-           0, out);
-  vstore16((float16)(r.s4, g.s4, b.s4, a.s4, r.s5, g.s5, b.s5, a.s5, r.s6, g.s6, b.s6, a.s6, r.s7,
-                     g.s7, b.s7, a.s7),
-           1, out);
-  vstore16((float16)(r.s8, g.s8, b.s8, a.s8, r.s9, g.s9, b.s9, a.s9, r.sa, g.sa, b.sa, a.sa, r.sb,
-                     g.sb, b.sb, a.sb),
-           2, out);
-  vstore16((float16)(r.sc, g.sc, b.sc, a.sc, r.sd, g.sd, b.sd, a.sd, r.se, g.se, b.se, a.se, r.sf,
-                     g.sf, b.sf, a.sf),
-           3, out);
+  vol_join(fma(t, br, c[0]), fma(t, bg, c[1]), fma(t, bb, c[2]), fma(t, ba, c[3]), q);
+  for (int k = 0; k < 4; k++)
+    vstore16(q[k], k, out);
 }
 
 /* ---- The shadow map ---------------------------------------------------------------------- */
@@ -539,21 +533,8 @@ __kernel void shadow_map(vfx_frame_t f, vfx_shadow_t sh, __global const float *r
   }
   for (int i = 0; i < f.nconv; i++) {
     __global const float *c = objs + f.conv_off + i * CONV_STRIDE;
-    vf tin = -INFINITY, tout = INFINITY;
-    vi miss = 0;
-    int np = as_int(c[CONV_NPLANES]);
-    for (int k = 0; k < np; k++) {
-      float pnx = c[4 * k], pny = c[4 * k + 1], pnz = c[4 * k + 2];
-      float den = pnx * dx + pny * dy + pnz * dz;
-      vf num = c[4 * k + 3] - (pnx * ox + pny * oy + pnz * oz);
-      vf t = num / den;
-      if (den < 0.0f)
-        tin = fmax(tin, t);
-      else if (den > 0.0f)
-        tout = fmin(tout, t);
-      else
-        miss |= num < 0.0f;
-    }
+    vf tin, tout;
+    vi miss = convex_span16(c, ox, oy, oz, dx, dy, dz, &tin, &tout);
     best = select(best, tin, ~miss & (tin <= tout) & (tin < best));
   }
   if (f.ntri > 0)
