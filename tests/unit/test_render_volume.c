@@ -11,6 +11,9 @@
  *   as the exact ones (no stripes);
  * - the shadow map: a thin sheet of medium under an occluder is dark behind it, lit beside it,
  *   and the pixel on the shadow's edge is in between;
+ * - a mesh occluder casts the same shadow in the volume as the box it is made of;
+ * - the volumes pass at half and a quarter resolution (render.volume_resolution): each pixel a
+ *   blend of the exact values of its own kind around it, on the box or off it;
  * - a small grid volume with zero margins (empty space skipped) against a fine double-precision
  *   march: trilinear density with clamped edges, transmittance towards the light marched
  *   separately, Henyey-Greenstein phase;
@@ -94,32 +97,62 @@ static const rcamera_t oblique = {.eye = {3.1f, 2.3f, 4.7f},
                                   .near_ = 0.01f,
                                   .far_ = 100};
 
+/* The homogeneous block of fog of test_transmittance and test_low_resolution (its grid 'g' one
+ * voxel of density 1), and the opaque box inside it. */
+static rvolume_t fog_block(density_grid_t *g) {
+  return (rvolume_t){.source = VOLUME_GRID,
+                     .min = {-1, -0.5f, -1.2f},
+                     .max = {1.3f, 1.5f, 0.8f},
+                     .density = 0.9f,
+                     .samples = 7,
+                     .grid = g};
+}
+
+static const robject_t fog_box = {.shape = SHAPE_BOX,
+                                  .position = {0.2f, 0.4f, -0.1f},
+                                  .scale = {0.8f, 0.7f, 0.9f},
+                                  .color = {0.6f, 0.6f, 0.6f}};
+
+/*
+ * The exact value of 'ray' through the fog 'v' onto the box 'box' (NULL: none) lit by ambient 1
+ * before a white background: the box's colour or 1, times exp(-density d) for the length d of
+ * fog in front of it. '*on' says whether the ray meets the box, '*in_fog' the fog, '*graze'
+ * that it only grazes the box's edge (within 1e-3, where float may go either way).
+ */
+static double fog_exact(const ray_t *ray, const rvolume_t *v, const robject_t *box, int *on,
+                        int *in_fog, int *graze) {
+  double lo[3], hi[3], blo[3] = {0}, bhi[3] = {0}, t0, t1, b0 = 0, b1 = 0;
+  for (int k = 0; k < 3; k++) {
+    lo[k] = v->min[k], hi[k] = v->max[k];
+    if (box)
+      blo[k] = box->position[k] - 0.5 * box->scale[k],
+      bhi[k] = box->position[k] + 0.5 * box->scale[k];
+  }
+  *on = box && slab(ray, blo, bhi, &b0, &b1);
+  *graze = *on && b1 - b0 < 1e-3;
+  *in_fog = slab(ray, lo, hi, &t0, &t1);
+  double end = *on ? b0 : INFINITY, behind = *on ? box->color[0] : 1;
+  return *in_fog && t0 < end ? behind * exp(-v->density * (fmin(t1, end) - t0)) : behind;
+}
+
 /* Homogeneous box, albedo 0, white background: exp(-sigma d). Then an opaque box inside. */
 static void test_transmittance(void) {
   density_grid_t *g = make_grid(1, 1, 1);
   g->data[0] = 1;
-  rvolume_t v = {.source = VOLUME_GRID,
-                 .min = {-1, -0.5f, -1.2f},
-                 .max = {1.3f, 1.5f, 0.8f},
-                 .density = 0.9f,
-                 .samples = 7,
-                 .grid = g};
+  rvolume_t v = fog_block(g);
   render_scene_t s = bare_scene(oblique);
   s.background[0] = s.background[1] = s.background[2] = 1;
   s.volumes = &v, s.nvolumes = 1;
   const int w = 48, h = 40;
   float *img = render_f32(&s, w, h, LAYER_ALL);
   CHECK(img != NULL, "render failed");
-  double lo[3], hi[3], worst = 0;
-  for (int k = 0; k < 3; k++)
-    lo[k] = v.min[k], hi[k] = v.max[k];
-  int inside = 0;
+  double worst = 0;
+  int inside = 0, on, in_fog, graze;
   for (int y = 0; img && y < h; y++)
     for (int x = 0; x < w; x++) {
       ray_t ray = pixel_ray(&s.camera, w, h, x, y);
-      double t0, t1, want = 1;
-      if (slab(&ray, lo, hi, &t0, &t1))
-        want = exp(-v.density * (t1 - t0)), inside++;
+      double want = fog_exact(&ray, &v, NULL, &on, &in_fog, &graze);
+      inside += in_fog;
       double got = img[4 * (y * w + x)];
       worst = fmax(worst, fabs(got - want));
       CHECK(fabs(got - want) < 2e-5 + 2e-5 * want, "pixel (%d, %d): %.7f, exact exp(-sd) %.7f", x,
@@ -132,34 +165,22 @@ static void test_transmittance(void) {
 
   /* An opaque box inside the volume, lit only by the ambient term: colour c, seen through the
    * volume from where the ray enters to the box's surface. */
-  robject_t box = {.shape = SHAPE_BOX,
-                   .position = {0.2f, 0.4f, -0.1f},
-                   .scale = {0.8f, 0.7f, 0.9f},
-                   .color = {0.6f, 0.6f, 0.6f}};
+  robject_t box = fog_box;
   s.objects = &box, s.nobjects = 1;
   s.light.intensity = 0;
   s.light.ambient = 1;
   img = render_f32(&s, w, h, LAYER_ALL);
   CHECK(img != NULL, "render failed");
-  double blo[3], bhi[3];
-  for (int k = 0; k < 3; k++)
-    blo[k] = box.position[k] - 0.5 * box.scale[k], bhi[k] = box.position[k] + 0.5 * box.scale[k];
   int hits = 0;
   worst = 0;
   for (int y = 0; img && y < h; y++)
     for (int x = 0; x < w; x++) {
       ray_t ray = pixel_ray(&s.camera, w, h, x, y);
-      double t0, t1, b0, b1, behind = 1, end;
-      int hit = slab(&ray, blo, bhi, &b0, &b1);
+      double want = fog_exact(&ray, &v, &box, &on, &in_fog, &graze);
       /* Pixels whose ray grazes the box's edge may go either way in float: skip them. */
-      if (hit && b1 - b0 < 1e-3)
+      if (graze)
         continue;
-      end = hit ? b0 : INFINITY;
-      if (hit)
-        behind = box.color[0], hits++;
-      double want = behind;
-      if (slab(&ray, lo, hi, &t0, &t1) && t0 < end)
-        want = behind * exp(-v.density * (fmin(t1, end) - t0));
+      hits += on;
       double got = img[4 * (y * w + x)];
       worst = fmax(worst, fabs(got - want));
       CHECK(fabs(got - want) < 3e-5, "clipped pixel (%d, %d): %.7f, exact %.7f", x, y, got, want);
@@ -173,24 +194,15 @@ static void test_transmittance(void) {
 /*
  * render.volume_resolution below full: the box inside the homogeneous volume of
  * test_transmittance, its volumes pass at half and a quarter of the frame's size, against the
- * exact transmittance of each full pixel's own ray. Away from the box's silhouette the low
- * pixels blend smoothly into the exact values; next to it each pixel takes the low pixels that
- * saw its own depth, so the box's edge pixels show the box through the fog before it, not the
- * fog beside it.
+ * exact transmittance of each full pixel's own ray: every pixel is a blend of the exact values
+ * around it of its own kind, so the box's edge pixels show the box through the fog before it,
+ * not the fog beside it, and the fog beside the box shows no box.
  */
 static void test_low_resolution(void) {
   density_grid_t *g = make_grid(1, 1, 1);
   g->data[0] = 1;
-  rvolume_t v = {.source = VOLUME_GRID,
-                 .min = {-1, -0.5f, -1.2f},
-                 .max = {1.3f, 1.5f, 0.8f},
-                 .density = 0.9f,
-                 .samples = 7,
-                 .grid = g};
-  robject_t box = {.shape = SHAPE_BOX,
-                   .position = {0.2f, 0.4f, -0.1f},
-                   .scale = {0.8f, 0.7f, 0.9f},
-                   .color = {0.6f, 0.6f, 0.6f}};
+  rvolume_t v = fog_block(g);
+  robject_t box = fog_box;
   render_scene_t s = bare_scene(oblique);
   s.background[0] = s.background[1] = s.background[2] = 1;
   s.volumes = &v, s.nvolumes = 1;
@@ -198,25 +210,13 @@ static void test_low_resolution(void) {
   s.light.intensity = 0;
   s.light.ambient = 1;
   const int w = 96, h = 80;
-  double lo[3], hi[3], blo[3], bhi[3];
-  for (int k = 0; k < 3; k++) {
-    lo[k] = v.min[k], hi[k] = v.max[k];
-    blo[k] = box.position[k] - 0.5 * box.scale[k], bhi[k] = box.position[k] + 0.5 * box.scale[k];
-  }
-  /* The exact image, which pixels are on the box, and which see the fog. */
+  /* The exact image, and which pixels are on the box. */
   double *want = malloc(sizeof(double) * w * h);
-  int *on = malloc(sizeof(int) * w * h), *fog = malloc(sizeof(int) * w * h);
+  int *on = malloc(sizeof(int) * w * h), in_fog, graze;
   for (int y = 0; y < h; y++)
     for (int x = 0; x < w; x++) {
       ray_t ray = pixel_ray(&s.camera, w, h, x, y);
-      double t0, t1, b0, b1, end = INFINITY, behind = 1;
-      on[y * w + x] = slab(&ray, blo, bhi, &b0, &b1);
-      fog[y * w + x] = slab(&ray, lo, hi, &t0, &t1);
-      if (on[y * w + x])
-        end = b0, behind = box.color[0];
-      want[y * w + x] = behind;
-      if (fog[y * w + x] && t0 < end)
-        want[y * w + x] = behind * exp(-v.density * (fmin(t1, end) - t0));
+      want[y * w + x] = fog_exact(&ray, &v, &box, &on[y * w + x], &in_fog, &graze);
     }
   for (int div = 2; div <= 4; div *= 2) {
     s.volume_div = div;
@@ -256,7 +256,6 @@ static void test_low_resolution(void) {
   }
   free(want);
   free(on);
-  free(fog);
   free_grid(g);
 }
 
