@@ -704,14 +704,17 @@ def config_file(cfg):
     return path
 
 
-def answered_meanwhile(other, busy, n=5, method="scene.list"):
-    """Sends 'n' requests one at a time on client 'other' while client 'busy' waits for an
-    answer; returns how many were answered before any of busy's answer had arrived."""
+def served_meanwhile(suite, other, busy, what, n=5, method="scene.list"):
+    """After client 'busy' has sent a request that takes long, checks that client 'other' is
+    answered meanwhile: of 'n' requests sent one at a time on 'other', some must be answered
+    before any of busy's answer has arrived. Returns how many were."""
+    time.sleep(0.02)  # Let the server take up busy's request first.
     served = 0
     for _ in range(n):
         other.ok(method)
         if not select.select([busy.sock], [], [], 0)[0]:
             served += 1
+    suite.check(served > 0, what, "%d of %d answers came before the busy client's" % (served, n))
     return served
 
 
