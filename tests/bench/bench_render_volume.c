@@ -147,6 +147,27 @@ static int render_once(renderer_t *r, const render_scene_t *s, uint32_t w, uint3
   return 0;
 }
 
+/* Frame times: the medians of a run of renders. */
+typedef struct medians {
+  double ms, vol, cpu; /* Whole render, volumes pass, process CPU: ms per frame. */
+} medians_t;
+
+/* 'runs' renders of 's' at w x h into 'm'; with 'alt', frame i shows the cloud grid alt[i & 1],
+ * so that every frame's cloud is new to the renderer. */
+static int median_frames(renderer_t *r, render_scene_t *s, uint32_t w, uint32_t h, int runs,
+                         density_grid_t *const *alt, medians_t *m) {
+  double t[MAX_RUNS], v[MAX_RUNS], c[MAX_RUNS];
+  for (int i = 0; i < runs; i++) {
+    if (alt)
+      s->cloud.grid = alt[i & 1];
+    if (render_once(r, s, w, h, PROTO_FMT_RGBA8, &t[i], &v[i], NULL) != 0)
+      return -1;
+    c[i] = last_cpu;
+  }
+  m->ms = bench_median(t, runs), m->vol = bench_median(v, runs), m->cpu = bench_median(c, runs);
+  return 0;
+}
+
 static int write_png(renderer_t *r, const render_scene_t *s, uint32_t w, uint32_t h,
                      const char *dir, const char *name) {
   render_output_t out;
@@ -248,32 +269,22 @@ int main(int argc, char **argv) {
   /* The paper's scene. The first frame bakes the noise and renders the shadow map; later
    * frames of the still scene reuse both, as a game's would. */
   render_scene_t s = paper_scene();
-  double total[MAX_RUNS], vol[MAX_RUNS], cpu[MAX_RUNS], first_ms, first_vol;
+  double first_ms, first_vol;
   if (render_once(r, &s, 1024, 1024, PROTO_FMT_RGBA8, &first_ms, &first_vol, NULL) != 0)
     return 1;
-  for (int i = 0; i < runs; i++) {
-    if (render_once(r, &s, 1024, 1024, PROTO_FMT_RGBA8, &total[i], &vol[i], NULL) != 0)
-      return 1;
-    cpu[i] = last_cpu;
-  }
-  double paper_ms = bench_median(total, runs), paper_vol = bench_median(vol, runs),
-         paper_cpu = bench_median(cpu, runs);
+  medians_t paper, low[2];
+  if (median_frames(r, &s, 1024, 1024, runs, NULL, &paper) != 0)
+    return 1;
   /* The same at render.volume_resolution "half" and "quarter". */
-  double low_ms[2], low_vol[2], low_cpu[2];
   for (int q = 0; q < 2; q++) {
     s.volume_div = 2 << q;
-    for (int i = 0; i < runs; i++) {
-      if (render_once(r, &s, 1024, 1024, PROTO_FMT_RGBA8, &total[i], &vol[i], NULL) != 0)
-        return 1;
-      cpu[i] = last_cpu;
-    }
-    low_ms[q] = bench_median(total, runs), low_vol[q] = bench_median(vol, runs);
-    low_cpu[q] = bench_median(cpu, runs);
+    if (median_frames(r, &s, 1024, 1024, runs, NULL, &low[q]) != 0)
+      return 1;
   }
   s.volume_div = 1;
 
   /* Cloud-sized grids, a new grid every frame. */
-  double cloud_ms[2], cloud_vol[2], still_ms[2], still_vol[2], cloud_cpu[2], still_cpu[2];
+  medians_t fresh[2], still[2];
   uint32_t sides[2] = {64, 128};
   for (int c = 0; c < 2; c++) {
     uint32_t dims[3] = {sides[c], sides[c], sides[c]};
@@ -305,24 +316,10 @@ int main(int argc, char **argv) {
                            .samples = 64,
                            .phase_g = 0.3f};
     cs.tone_map = TONE_ACES;
-    double t[MAX_RUNS], v[MAX_RUNS];
-    for (int i = 0; i < runs; i++) {
-      /* Alternating grids: each frame's cloud is new to the renderer. */
-      cs.cloud.grid = g[i & 1];
-      if (render_once(r, &cs, 512, 512, PROTO_FMT_RGBA8, &t[i], &v[i], NULL) != 0)
-        return 1;
-      cpu[i] = last_cpu;
-    }
-    cloud_ms[c] = bench_median(t, runs), cloud_vol[c] = bench_median(v, runs);
-    cloud_cpu[c] = bench_median(cpu, runs);
-    /* The same grid every frame: the kernel alone. */
-    for (int i = 0; i < runs; i++) {
-      if (render_once(r, &cs, 512, 512, PROTO_FMT_RGBA8, &t[i], &v[i], NULL) != 0)
-        return 1;
-      cpu[i] = last_cpu;
-    }
-    still_ms[c] = bench_median(t, runs), still_vol[c] = bench_median(v, runs);
-    still_cpu[c] = bench_median(cpu, runs);
+    /* Alternating grids, then the same grid every frame: the kernel alone. */
+    if (median_frames(r, &cs, 512, 512, runs, g, &fresh[c]) != 0 ||
+        median_frames(r, &cs, 512, 512, runs, NULL, &still[c]) != 0)
+      return 1;
     renderer_destroy(r);
     if (renderer_create(&opts, &r, err, sizeof err) != 0) {
       fprintf(stderr, "renderer_create: %s\n", err);
@@ -343,7 +340,7 @@ int main(int argc, char **argv) {
   printf("| --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: |\n");
   printf("| mist + 10 objects + shafts (shadow map 1024²) | 1024² | 32 | 43 (8 primitives x 4 "
          "samples) | %.1f (%.1f) | %.2fx | %.1f | %.0f |\n",
-         1000 / paper_ms, paper_ms, 1000 / paper_ms / 43, paper_vol, paper_cpu);
+         1000 / paper.ms, paper.ms, 1000 / paper.ms / 43, paper.vol, paper.cpu);
   printf("| same, first frame (noise baked, shadow map rendered) | 1024² | 32 | | %.1f (%.1f) | "
          "| %.1f | |\n",
          1000 / first_ms, first_ms, first_vol);
@@ -351,13 +348,13 @@ int main(int argc, char **argv) {
     printf(
         "| same, volumes pass at %s resolution (%d² rays) | 1024² | 32 | | %.1f (%.1f) | %.2fx | "
         "%.1f | %.0f |\n",
-        q ? "quarter" : "half", 1024 >> (q + 1), 1000 / low_ms[q], low_ms[q], 1000 / low_ms[q] / 43,
-        low_vol[q], low_cpu[q]);
+        q ? "quarter" : "half", 1024 >> (q + 1), 1000 / low[q].ms, low[q].ms, 1000 / low[q].ms / 43,
+        low[q].vol, low[q].cpu);
   for (int c = 0; c < 2; c++) {
     printf("| cloud grid %u³, new every frame | 512² | 64 | | %.1f (%.1f) | | %.1f | %.0f |\n",
-           sides[c], 1000 / cloud_ms[c], cloud_ms[c], cloud_vol[c], cloud_cpu[c]);
+           sides[c], 1000 / fresh[c].ms, fresh[c].ms, fresh[c].vol, fresh[c].cpu);
     printf("| cloud grid %u³, unchanged | 512² | 64 | | %.1f (%.1f) | | %.1f | %.0f |\n", sides[c],
-           1000 / still_ms[c], still_ms[c], still_vol[c], still_cpu[c]);
+           1000 / still[c].ms, still[c].ms, still[c].vol, still[c].cpu);
   }
   printf("\nMedians of %d runs; render only (no PNG encoding). CPU ms: the process's CPU time "
          "per frame over all threads (on an idle 2-core machine the wall time is about half of "
