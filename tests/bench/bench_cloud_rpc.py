@@ -34,6 +34,7 @@ import time
 HERE = os.path.dirname(os.path.abspath(__file__))
 sys.path.insert(0, os.path.join(HERE, "..", "integration"))
 import mock  # noqa: E402
+import streaming  # noqa: E402
 
 SIZE = 512
 TICK = os.sysconf("SC_CLK_TCK")
@@ -96,26 +97,20 @@ def one_run(srv, side, frames, seconds):
                                         "format": "png", "fps": 240})
     f0 = c.ok("scene.get", {"scene": s, "path": "sim.frame"})[0]
     c.ok("sim.play", {"scene": s, "rate": 60})
-    got, t0, c0, last = 0, None, None, None
-    t_end = time.perf_counter() + seconds
-    while time.perf_counter() < t_end:
-        msg, _ = c.recv(timeout=600)
-        if not isinstance(msg, dict) or msg.get("method") != "frames":
-            continue
-        if t0 is None:
-            t0, c0 = time.perf_counter(), cpu_s(pid)
-            step0 = msg["params"].get("frame", f0)
-            continue
-        got += 1
-        last = msg["params"]
-    dt = time.perf_counter() - t0
-    cpu = cpu_s(pid) - c0
+    start = {}
+
+    def first(params):
+        start["cpu"], start["frame"] = cpu_s(pid), params.get("frame", f0)
+
+    frames, dt = streaming.receive_frames(c, seconds, on_first=first)
+    cpu = cpu_s(pid) - start["cpu"]
     c.send(c.request("sim.pause", {"scene": s}))
     c.send(c.request("frames.unsubscribe", {"id": sub["id"]}))
     c.close()
-    res["stream_fps"] = got / dt
-    res["stream_cpu"] = 1e3 * cpu / max(got, 1)
-    res["steps_per_s"] = ((last or {}).get("frame", step0) - step0) / dt
+    res["stream_fps"] = len(frames) / dt
+    res["stream_cpu"] = 1e3 * cpu / max(len(frames), 1)
+    last = frames[-1][0] if frames else {}
+    res["steps_per_s"] = (last.get("frame", start["frame"]) - start["frame"]) / dt
     c = srv.connect(timeout=600)
     c.ok("scene.delete", {"name": s})
     c.close()

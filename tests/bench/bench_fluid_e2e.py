@@ -29,6 +29,7 @@ import time
 HERE = os.path.dirname(os.path.abspath(__file__))
 sys.path.insert(0, os.path.join(HERE, "..", "integration"))
 import mock  # noqa: E402
+import streaming  # noqa: E402
 
 PRESETS = {4096: "paper-001-flow", 16384: "paper-001-flow-16384"}
 # (particles, size): the frame rate printed on the paper's Figs. 10-11.
@@ -80,27 +81,16 @@ def stream(srv, preset, size, seconds):
     sub, _ = c.ok("frames.subscribe", {"scene": s, "width": size, "height": size,
                                         "format": "png", "fps": 240})
     c.ok("sim.play", {"scene": s, "rate": 60})
-    frames, work, t0, last = 0, [], None, None
-    t_end = time.perf_counter() + seconds
-    while time.perf_counter() < t_end:
-        msg, att = c.recv(timeout=300)
-        if not isinstance(msg, dict) or msg.get("method") != "frames":
-            continue
-        if t0 is None:
-            t0 = time.perf_counter()
-            continue
-        frames += 1
-        work.append(msg["params"].get("work_ms", 0))
-        last = msg["params"]
-    dt = time.perf_counter() - t0
+    frames, dt = streaming.receive_frames(c, seconds, timeout=300)
     c.send(c.request("sim.pause", {"scene": s}))
     c.send(c.request("frames.unsubscribe", {"id": sub["id"]}))
     c.close()
     c = srv.connect(timeout=300)
     c.ok("scene.delete", {"name": s})
     c.close()
-    return {"fps": frames / dt, "work": statistics.median(work) if work else 0,
-            "dropped": (last or {}).get("dropped", 0)}
+    work = [p.get("work_ms", 0) for p, _ in frames]
+    return {"fps": len(frames) / dt, "work": statistics.median(work) if work else 0,
+            "dropped": frames[-1][0].get("dropped", 0) if frames else 0}
 
 
 def main():

@@ -19,11 +19,11 @@ import argparse
 import os
 import statistics
 import sys
-import time
 
 HERE = os.path.dirname(os.path.abspath(__file__))
 sys.path.insert(0, os.path.join(HERE, "..", "integration"))
 import mock  # noqa: E402
+import streaming  # noqa: E402
 
 
 def thesis_waves(n):
@@ -46,26 +46,13 @@ def one_run(srv, args):
     if args.waves:
         params["layers"] = ["waves"]
     sub, _ = c.ok("frames.subscribe", params)
-    frames, work, enc, nbytes, last = 0, [], [], [], None
-    t_end = time.perf_counter() + args.seconds
-    t0 = None
-    while time.perf_counter() < t_end:
-        msg, att = c.recv()
-        if not isinstance(msg, dict) or msg.get("method") != "frames":
-            continue
-        p = msg["params"]
-        if t0 is None:  # The clock starts at the first frame, after any warm-up.
-            t0 = time.perf_counter()
-            continue
-        frames += 1
-        work.append(p.get("work_ms", 0))
-        enc.append((p.get("passes") or {}).get("encode", 0))
-        nbytes.append(len(att or b""))
-        last = p
-    dt = time.perf_counter() - t0
+    frames, dt = streaming.receive_frames(c, args.seconds, timeout=60)
+    work = [p.get("work_ms", 0) for p, _ in frames]
+    enc = [(p.get("passes") or {}).get("encode", 0) for p, _ in frames]
+    nbytes = [len(att or b"") for _, att in frames]
     c.send(c.request("frames.unsubscribe", {"id": sub["id"]}))
     c.close()
-    return (frames / dt, statistics.median(work), (last or {}).get("dropped", 0),
+    return (len(frames) / dt, statistics.median(work), frames[-1][0].get("dropped", 0),
             statistics.median(enc), statistics.median(nbytes))
 
 
