@@ -11,6 +11,7 @@
 #include <sys/stat.h>
 
 #include "log.h"
+#include "reclaim.h"
 #include "scene_files.h"
 #include "seeding.h"
 #include "server.h"
@@ -90,10 +91,13 @@ int main(int argc, char **argv) {
       (double)(now_ns() - t0) / 1e6);
 
   s->loop = uv_default_loop();
+  if (reclaim_start() != 0)
+    LOG(LOG_WARN, "server", "no reclaimer thread: big blocks are freed where they are dropped");
   stats_init(&s->stats, now_ns());
   s->worker = worker_start(s->loop, renderer, s->cfg.render_queue);
   if (!s->worker) {
     renderer_destroy(renderer);
+    reclaim_stop();
     return 1;
   }
 
@@ -112,6 +116,7 @@ int main(int argc, char **argv) {
     server_request_stop(s);
     uv_run(s->loop, UV_RUN_DEFAULT);
     uv_loop_close(s->loop);
+    reclaim_stop();
     return 1;
   }
 
@@ -131,6 +136,7 @@ int main(int argc, char **argv) {
    * finished after the scenes were removed is dropped here. */
   seeding_prune();
   scene_files_prune();
+  reclaim_stop();
   LOG(LOG_INFO, "server", "stopped");
   return exit_code;
 }

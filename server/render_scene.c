@@ -7,6 +7,7 @@
 #include <stddef.h>
 #include <stdlib.h>
 
+#include "reclaim.h"
 #include "render_scene.h"
 
 render_scene_t *render_scene_ref(render_scene_t *s) {
@@ -64,8 +65,9 @@ particles_t *particles_ref(particles_t *p) {
 void particles_unref(particles_t *p) {
   if (!p || atomic_fetch_sub_explicit(&p->refs, 1, memory_order_acq_rel) != 1)
     return;
-  free(p->pos);
-  free(p->vel);
+  size_t bytes = (size_t)(p->count ? p->count : 1) * 3 * sizeof(float);
+  reclaim_free(p->pos, bytes);
+  reclaim_free(p->vel, bytes);
   free(p);
 }
 
@@ -96,6 +98,6 @@ density_grid_t *density_grid_ref(density_grid_t *g) {
 void density_grid_unref(density_grid_t *g) {
   if (!g || atomic_fetch_sub_explicit(&g->refs, 1, memory_order_acq_rel) != 1)
     return;
-  free(g->data);
+  reclaim_free(g->data, (size_t)g->dims[0] * g->dims[1] * g->dims[2] * sizeof(float));
   free(g);
 }

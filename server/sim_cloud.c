@@ -21,6 +21,7 @@
 #include <string.h>
 
 #include "parallel.h"
+#include "reclaim.h"
 
 #define GOLDEN 0x9E3779B1u
 
@@ -69,7 +70,7 @@ cloud_cells_t *cloud_cells_ref(cloud_cells_t *c) {
 
 void cloud_cells_unref(cloud_cells_t *c) {
   if (c && atomic_fetch_sub(&c->refs, 1) == 1) {
-    free(c->hum);
+    reclaim_free(c->hum, 3 * plane_words(c) * sizeof *c->hum);
     free(c);
   }
 }

@@ -12,6 +12,8 @@
 #include <unistd.h>
 
 #include "proto.h"
+#include "reclaim.h"
+#include "render_scene.h"
 #include "scene.h"
 
 static int failures;
@@ -25,38 +27,6 @@ static int failures;
   } while (0)
 
 #define CHECK_NEAR(a, b) CHECK(fabs((double)(a) - (double)(b)) < 1e-6)
-
-#ifdef VOLFX_TEST_MESH_STUBS
-/* Stand-ins for server/mesh_obj.c while it is written elsewhere: enough to see a file read or
- * refused. Build with -DCMAKE_C_FLAGS=-DVOLFX_TEST_MESH_STUBS to use them. */
-mesh_t *mesh_ref(mesh_t *m) {
-  atomic_fetch_add(&m->refs, 1);
-  return m;
-}
-
-void mesh_unref(mesh_t *m) {
-  if (m && atomic_fetch_sub(&m->refs, 1) == 1) {
-    free(m->tri);
-    free(m);
-  }
-}
-
-mesh_t *mesh_load_obj(const char *path, char *err, size_t errlen) {
-  FILE *f = fopen(path, "r");
-  int c = f ? fgetc(f) : EOF;
-  if (f)
-    fclose(f);
-  if (c != 'v') {
-    snprintf(err, errlen, "%s:1: not an OBJ file", path);
-    return NULL;
-  }
-  mesh_t *m = calloc(1, sizeof *m);
-  atomic_init(&m->refs, 1);
-  m->ntri = 1;
-  m->tri = calloc(9, sizeof *m->tri);
-  return m;
-}
-#endif
 
 /* Parses 'text' or dies: the test's own JSON must be right. */
 static cJSON *J(const char *text) {
@@ -672,6 +642,30 @@ static void test_meshes(void) {
   rmdir(dir);
 }
 
+/* Big blocks dropped while the reclaimer runs go to its thread, small ones and those dropped
+ * before it starts or after it stops are freed on the spot; under ASan, a block the reclaimer
+ * lost would be a leak and one freed twice an error. */
+static void test_reclaim(void) {
+  const uint32_t big[3] = {128, 64, 32}, small[3] = {8, 8, 8};
+  density_grid_unref(density_grid_new(big));
+  CHECK(reclaim_handed() == 0);
+  CHECK(reclaim_start() == 0);
+  density_grid_t *g = density_grid_new(big);
+  for (size_t i = 0; g && i < (size_t)big[0] * big[1] * big[2]; i++)
+    g->data[i] = 1.0f;
+  density_grid_unref(density_grid_new(small));
+  CHECK(reclaim_handed() == 0);
+  density_grid_unref(density_grid_ref(g));
+  CHECK(reclaim_handed() == 0);
+  density_grid_unref(g);
+  CHECK(reclaim_handed() == 1);
+  particles_unref(particles_new(1u << 17));
+  CHECK(reclaim_handed() == 3);
+  reclaim_stop();
+  density_grid_unref(density_grid_new(big));
+  CHECK(reclaim_handed() == 3);
+}
+
 int main(void) {
   test_defaults();
   test_patch();
@@ -682,6 +676,7 @@ int main(void) {
   test_engine();
   test_advance();
   test_meshes();
+  test_reclaim();
   if (failures) {
     fprintf(stderr, "test_scene: %d check(s) failed\n", failures);
     return 1;
