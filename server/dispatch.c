@@ -56,6 +56,7 @@ static void part_error(conn_t *c, reply_t *r, int i, const cJSON *id, int code, 
 static void call_done(call_t *call, cJSON *response, char *line, size_t line_len,
                       unsigned char *att, size_t att_len) {
   conn_t *c = call->conn;
+  int holding = call->holding;
   reply_part_t *p = &call->reply->parts[call->part];
   if (call->id) {
     p->response = response;
@@ -76,7 +77,16 @@ static void call_done(call_t *call, cJSON *response, char *line, size_t line_len
   free(call);
   if (!c->closing)
     conn_flush_replies(c);
+  if (holding)
+    conn_release(c);
   conn_unref(c);
+}
+
+void call_hold(call_t *call) {
+  if (!call->holding) {
+    call->holding = 1;
+    conn_hold(call->conn);
+  }
 }
 
 static void call_finish(call_t *call, cJSON *response, unsigned char *att, size_t att_len) {

@@ -404,7 +404,8 @@ static void set_cells_m(call_t *call) {
     if (cj) {
       cj->gen = s->cloud_gen;
       s->cloud_chain = cloud_link_ref(cj->res);
-      goto out; /* Answered by the job. */
+      call_hold(call); /* The connection's next requests see the new density. */
+      goto out;        /* Answered by the job. */
     }
   }
   cJSON *r = cJSON_CreateObject();

@@ -154,7 +154,8 @@ static void sim_step(call_t *call) {
   const cJSON *dt = cJSON_GetObjectItem(call->params, "dt");
   double step_dt = dt ? dt->valuedouble : scene_dt(e->scene);
   scene_advance(e->scene, steps, step_dt);
-  /* The cloud and the fluid step on the worker, in that order; the answer waits for the last. */
+  /* The cloud and the fluid step on the worker, in that order; the answer waits for the last,
+   * and so do the connection's next requests, which see the steps taken. */
   int fluid = fluid_wants_step(e);
   if (cloud_wants_step(e)) {
     if (cloud_submit_step(call->srv, e, steps, fluid ? NULL : call) != 0) {
@@ -162,13 +163,17 @@ static void sim_step(call_t *call) {
                  proto_err_message(PROTO_E_BUSY));
       return;
     }
-    if (!fluid)
+    if (!fluid) {
+      call_hold(call);
       return;
+    }
   }
   if (fluid) {
     if (fluid_submit_step(call->srv, e, steps, step_dt, call) != 0)
       call_error(call, PROTO_E_BUSY, NULL, "%s: the render queue is full",
                  proto_err_message(PROTO_E_BUSY));
+    else
+      call_hold(call);
     return;
   }
   call_result(call, clock_json(e));

@@ -88,6 +88,7 @@ struct call {
   const method_t *method;
   uint64_t t_start_ns;
   struct call_files *files; /* Files read for this call while it waited (defer.c), or NULL. */
+  int holding;              /* call_hold: the connection waits for this call's answer. */
 };
 
 /* A scene held by the server, with its free-running simulation timer. */
@@ -147,6 +148,11 @@ void net_stop(server_t *s);
 void dispatch_line(conn_t *c, char *line, size_t len);
 /* Dispatches the rest of a batch that a hold stopped part-way, until done or held again. */
 void dispatch_resume(conn_t *c);
+/* Holds the call's connection (conn_hold) until the call is answered: for a call answered later,
+ * from a job, whose effect the connection's next requests must see (a sim.step's steps, the
+ * density of cloud.set_cells). Call it only once the answer is sure to come later: a hold ended
+ * inside the handler would dispatch the next requests from within it. */
+void call_hold(call_t *call);
 /* Finishes 'call' with 'result' (taken). */
 void call_result(call_t *call, cJSON *result);
 /* Finishes 'call' with 'result' (taken) and binary data (taken), as an attachment or, when

@@ -491,6 +491,71 @@ def demo_opens_on_a_cloud(s):
     s.check(0 < differ < len(a) // 16, "the cloud covers part of the demo's sky", differ)
 
 
+def pipelined(c, *requests):
+    """Sends 'requests' (method, params) in one write; returns their answers in order."""
+    reqs = [c.request(m, p) for m, p in requests]
+    c.send_raw(b"".join(mock.dumps(q).encode() + b"\n" for q in reqs))
+    return [c.recv_response(timeout=60)[0] for _ in reqs]
+
+
+def cells_of(resp):
+    return base64.b64decode((resp.get("result") or {}).get("data", ""))
+
+
+@T
+def requests_behind_a_step_see_it(s):
+    """Requests written right behind sim.step or cloud.set_cells on the same connection,
+    pipelined or in the same batch, are answered from the cloud after it (SPEC 3: answered in
+    order): a read sees the steps, a write cannot undo them, the density follows new cld."""
+    c = s.srv.connect()
+    make(c, "pipe")
+    rng = random.Random(23)
+    hum, act, cld = random_cells(rng)
+    for field, vals in zip(("hum", "act", "cld"), (hum, act, cld)):
+        c.ok("cloud.set_cells", {"scene": "pipe", "field": field, "data": b64(vals)})
+    n = (NX, NY, NZ)
+    read = ("cloud.get_cells", {"scene": "pipe", "field": "cld", "encoding": "base64"})
+    step, got = pipelined(c, ("sim.step", {"scene": "pipe"}), read)
+    hum, act, cld = ref_step(hum, act, cld, n)
+    s.check("result" in step, "the pipelined sim.step is answered", mock.short(step))
+    s.eq((got.get("result") or {}).get("step"), 1, "the read behind sim.step sees its step")
+    s.check(cells_of(got) == bytes(cld), "the read behind sim.step sees the stepped cells")
+    # A write behind a step lands on the stepped cells; the step is not thrown away.
+    zeros = b64([0] * N)
+    pipelined(c, ("sim.step", {"scene": "pipe"}),
+              ("cloud.set_cells", {"scene": "pipe", "field": "hum", "data": zeros}))
+    hum, act, cld = ref_step(hum, act, cld, n)
+    hum = [0] * N
+    r, att = get(c, "pipe", "act")
+    s.eq(r.get("step"), 2, "a set_cells behind sim.step keeps the step")
+    s.check(att == bytes(act), "the cells are the stepped ones, then hum set")
+    s.check(get(c, "pipe", "hum")[1] == bytes(N), "and hum is what the write set")
+    # In a batch: two steps, then a read.
+    resp = mock.batch(s, c, [c.request("sim.step", {"scene": "pipe", "steps": 2}),
+                             c.request(*read)])
+    for _ in range(2):
+        hum, act, cld = ref_step(hum, act, cld, n)
+    if resp:
+        s.eq((resp[1].get("result") or {}).get("step"), 4, "the read in the batch sees 2 steps")
+        s.check(cells_of(resp[1]) == bytes(cld), "and their cells")
+    # cloud.set_cells of cld recomputes the density before the next request is served.
+    ones = b64([1] * N)
+    _, dens = pipelined(c, ("cloud.set_cells", {"scene": "pipe", "field": "cld", "data": ones}),
+                        ("cloud.get_cells", {"scene": "pipe", "field": "density",
+                                             "encoding": "base64"}))
+    d = struct.unpack("<%df" % N, cells_of(dens))
+    _, alone = get(c, "pipe", "density")
+    s.check(max(d) > 0.5, "the density read behind set_cells cld sees the new cells", max(d))
+    s.check(cells_of(dens) == alone, "and equals the density read afterwards")
+    # Another connection is not held: it is answered while this one waits for a long step.
+    big = s.srv.connect()
+    make(big, "pipe_big", grid=(128, 128, 128), rules="dobashi", p_act=0.01, p_hum=0.01)
+    big.send_raw(mock.dumps(big.request("sim.step", {"scene": "pipe_big", "steps": 20})) + "\n")
+    mock.served_meanwhile(s, c, big, "another client is served while a connection waits for "
+                          "its step")
+    big.recv_response(timeout=120)
+
+
 @T
 def snapshot_carries_cells(s):
     c = s.srv.connect()

@@ -115,6 +115,16 @@ def step_under_gravity(s):
     vy = sum(v[1] for v in unpack(vatt)) / 1000
     s.check(vy < 0, "the fluid falls", "mean vy %g" % vy)
     s.check(all(math.isfinite(v) for p in unpack(vatt) for v in p), "every velocity finite")
+    # A read written right behind sim.step, on the same connection, sees the steps.
+    reqs = [c.request("sim.step", {"scene": "st", "steps": 2}),
+            c.request("fluid.get_particles", {"scene": "st", "encoding": "base64"})]
+    c.send_raw(b"".join(mock.dumps(q).encode() + b"\n" for q in reqs))
+    c.recv_response(timeout=120)
+    behind, _ = c.recv_response(timeout=120)
+    _, alone = c.ok("fluid.get_particles", {"scene": "st"})
+    seen = base64.b64decode((behind.get("result") or {}).get("data", ""))
+    s.check(seen == alone, "the read behind sim.step sees the stepped particles")
+    s.check(seen != att, "which moved")
 
     # Drawn: the frame differs from one without the fluid layer, and depth sees it.
     params = {"scene": "st", "width": 64, "height": 64, "format": "png"}
