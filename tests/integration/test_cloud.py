@@ -80,6 +80,15 @@ def random_cells(rng):
     return hum, act, cld
 
 
+def random_cloud(c, name, seed):
+    """Makes scene 'name' with a cloud of random_cells; returns its (hum, act, cld)."""
+    make(c, name)
+    cells = random_cells(random.Random(seed))
+    for field, vals in zip(("hum", "act", "cld"), cells):
+        c.ok("cloud.set_cells", {"scene": name, "field": field, "data": b64(vals)})
+    return cells
+
+
 @T
 def round_trip(s):
     c = s.srv.connect()
@@ -112,11 +121,7 @@ def round_trip(s):
 @T
 def steps_match_reference(s):
     c = s.srv.connect()
-    make(c, "ref")
-    rng = random.Random(11)
-    hum, act, cld = random_cells(rng)
-    for field, vals in zip(("hum", "act", "cld"), (hum, act, cld)):
-        c.ok("cloud.set_cells", {"scene": "ref", "field": field, "data": b64(vals)})
+    hum, act, cld = random_cloud(c, "ref", 11)
     n = (NX, NY, NZ)
     for steps in (1, 3):
         c.ok("sim.step", {"scene": "ref", "steps": steps}, timeout=60)
@@ -508,11 +513,7 @@ def requests_behind_a_step_see_it(s):
     pipelined or in the same batch, are answered from the cloud after it (SPEC 3: answered in
     order): a read sees the steps, a write cannot undo them, the density follows new cld."""
     c = s.srv.connect()
-    make(c, "pipe")
-    rng = random.Random(23)
-    hum, act, cld = random_cells(rng)
-    for field, vals in zip(("hum", "act", "cld"), (hum, act, cld)):
-        c.ok("cloud.set_cells", {"scene": "pipe", "field": field, "data": b64(vals)})
+    hum, act, cld = random_cloud(c, "pipe", 23)
     n = (NX, NY, NZ)
     read = ("cloud.get_cells", {"scene": "pipe", "field": "cld", "encoding": "base64"})
     step, got = pipelined(c, ("sim.step", {"scene": "pipe"}), read)
