@@ -10,7 +10,7 @@
 
 /* Letters, digits, '_', '-', '.', '/'; no empty, "." or ".." component; not absolute; no
  * component starting with '.' (so no hidden or temporary files of ours). */
-static int name_is_tame(const char *name) {
+int datapath_name_ok(const char *name) {
   size_t n = strlen(name);
   if (n == 0 || n > 255 || name[0] == '/' || name[n - 1] == '/')
     return 0;
@@ -44,7 +44,7 @@ int datapath_resolve(const char *data_dir, const char *name, int must_exist, cha
     snprintf(why, whylen, "files are unavailable: the server was started without --data");
     return -1;
   }
-  if (!name_is_tame(name)) {
+  if (!datapath_name_ok(name)) {
     snprintf(why, whylen,
              "\"%.64s\" must be a relative path inside the data directory: letters, digits, "
              "'_', '-', '.', '/', no component starting with '.'",

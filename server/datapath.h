@@ -8,6 +8,10 @@
 
 #include <stddef.h>
 
+/* Whether 'name' is one datapath_resolve may accept: relative, letters, digits, '_', '-', '.',
+ * '/', no empty component and none starting with '.'. It looks at no file. */
+int datapath_name_ok(const char *name);
+
 /*
  * Resolves 'name' under 'data_dir' into 'out' ('outlen' bytes). With 'must_exist' the file
  * itself must exist (and is resolved through links); otherwise only its directory must exist.

@@ -22,6 +22,29 @@ static void publish_limits(const server_t *s, const sch_field_t *f, cJSON *schem
   }
 }
 
+/* Member 'name' of the properties of object schema 'o', or NULL. */
+static cJSON *property(cJSON *o, const char *name) {
+  return cJSON_GetObjectItemCaseSensitive(cJSON_GetObjectItemCaseSensitive(o, "properties"), name);
+}
+
+/* Sets the items of vec3 schema 'v' to integers from 1 to 'max'. */
+static void integer_sides(cJSON *v, uint32_t max) {
+  cJSON *items = cJSON_GetObjectItemCaseSensitive(v, "items");
+  if (!items)
+    return;
+  cJSON_ReplaceItemInObjectCaseSensitive(items, "type", cJSON_CreateString("integer"));
+  cJSON_DeleteItemFromObjectCaseSensitive(items, "maximum");
+  cJSON_AddNumberToObject(items, "maximum", max);
+}
+
+/* The scene's grid sides (cloud.grid, volumes[].dims) are bounded by limits.cloud_side, which the
+ * static schema cannot know either. */
+static void publish_sides(const server_t *s, cJSON *scene) {
+  integer_sides(property(property(scene, "cloud"), "grid"), s->cfg.limits.cloud_side);
+  cJSON *vols = cJSON_GetObjectItemCaseSensitive(property(scene, "volumes"), "items");
+  integer_sides(property(vols, "dims"), s->cfg.limits.cloud_side);
+}
+
 static cJSON *method_json(const server_t *s, const method_t *m) {
   cJSON *o = cJSON_CreateObject();
   cJSON_AddStringToObject(o, "name", m->name);
@@ -62,7 +85,9 @@ cJSON *discover_document(const server_t *s) {
     cJSON_AddItemToArray(methods, method_json(s, *m));
   cJSON *components = cJSON_AddObjectToObject(doc, "components");
   cJSON *schemas = cJSON_AddObjectToObject(components, "schemas");
-  cJSON_AddItemToObject(schemas, "Scene", sch_to_json_schema(&scene_schema));
+  cJSON *scene = sch_to_json_schema(&scene_schema);
+  publish_sides(s, scene);
+  cJSON_AddItemToObject(schemas, "Scene", scene);
   cJSON *errors = cJSON_AddObjectToObject(components, "errors");
 #define XX(name, code, msg) cJSON_AddItemToObject(errors, #name, error_json(code));
   PROTO_ERROR_MAP(XX)

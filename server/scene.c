@@ -19,6 +19,7 @@
 #include <string.h>
 
 #include "anim.h"
+#include "datapath.h"
 #include "scene_files.h"
 #include "seeding.h"
 #include "proto.h"
@@ -96,17 +97,23 @@ static int check_volumes(const cJSON *doc, scene_error_t *err) {
                        "%s: must be above bounds.min on every axis (%c: %g <= %g)", p, "xyz"[k],
                        hi[k], lo[k]);
       }
-    if (strcmp(get(v, "source")->valuestring, "file") == 0) {
-      const cJSON *file = get(v, "file"), *dims = get(v, "dims");
-      if (!file || !file->valuestring[0]) {
-        snprintf(p, sizeof p, "volumes.%d.file", i);
-        return set_err(err, PROTO_E_INVALID_PARAMS, p,
-                       "%s: a file volume needs a file (raw densities under the data directory)",
-                       p);
-      }
-      snprintf(p, sizeof p, "volumes.%d.dims", i);
-      if (!dims)
-        return set_err(err, PROTO_E_INVALID_PARAMS, p, "%s: a file volume needs dims", p);
+    /* The file's name and dims are checked wherever they are given, so that even a noise
+     * volume's document holds no name outside the data directory; a file volume needs both. */
+    const cJSON *file = get(v, "file"), *dims = get(v, "dims");
+    int from_file = strcmp(get(v, "source")->valuestring, "file") == 0;
+    snprintf(p, sizeof p, "volumes.%d.file", i);
+    if (from_file && (!file || !file->valuestring[0]))
+      return set_err(err, PROTO_E_INVALID_PARAMS, p,
+                     "%s: a file volume needs a file (raw densities under the data directory)", p);
+    if (file && file->valuestring[0] && !datapath_name_ok(file->valuestring))
+      return set_err(err, PROTO_E_INVALID_PARAMS, p,
+                     "%s: \"%.64s\" must be a relative path inside the data directory: letters, "
+                     "digits, '_', '-', '.', '/', no component starting with '.'",
+                     p, file->valuestring);
+    snprintf(p, sizeof p, "volumes.%d.dims", i);
+    if (from_file && !dims)
+      return set_err(err, PROTO_E_INVALID_PARAMS, p, "%s: a file volume needs dims", p);
+    if (dims) {
       double d[3];
       vec3d(dims, d);
       for (int k = 0; k < 3; k++) {
@@ -572,11 +579,15 @@ static int check_cloud(const cJSON *doc, scene_error_t *err) {
     if (n[i] != floor(n[i]))
       return set_err(err, PROTO_E_INVALID_PARAMS, "cloud.grid",
                      "cloud.grid: %g is not a whole number of cells", n[i]);
-    /* A disabled cloud has no cells, so only an enabled one is held to the limit. */
-    if (n[i] > g_cloud_side && cJSON_IsTrue(get(cloud, "enabled")))
+    /* A disabled cloud has no cells, so only an enabled one is held to the configured limit
+     * (the default 64³ must not break every scene of a server with a smaller one); no side
+     * may pass the largest limit a server can be given. */
+    int enabled = cJSON_IsTrue(get(cloud, "enabled"));
+    uint32_t limit = enabled ? g_cloud_side : CLOUD_MAX_SIDE;
+    if (n[i] > limit)
       return set_err(err, PROTO_E_LIMIT, "cloud.grid",
-                     "cloud.grid: %g cells is over the limit of %u per side (limits.cloud_side)",
-                     n[i], g_cloud_side);
+                     "cloud.grid: %g cells is over the limit of %u per side (%s)", n[i], limit,
+                     enabled ? "limits.cloud_side" : "the most any server allows");
   }
   /* The seeding steps are bounded so that one change cannot hold a thread for long. */
   double steps = get(get(cloud, "init"), "steps")->valuedouble;

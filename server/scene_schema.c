@@ -10,6 +10,8 @@
  */
 #include "scene.h"
 
+#include <math.h>
+
 #define WORLD 1e6                 /* Largest world coordinate accepted. */
 #define TWO_53 9007199254740992.0 /* 2^53: every integer up to here is exact in a double. */
 
@@ -837,7 +839,7 @@ static const sch_field_t cloud_fields[] = {
              "fresh cells.",
      .unit = "cells",
      .min = 1,
-     .max = 1024,
+     .max = INFINITY, /* Checked against the limit by scene.c (-32003), published by discover. */
      .def_vec = cloud_grid},
     {.name = "origin",
      .type = SCH_VEC3,

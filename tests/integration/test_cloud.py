@@ -246,6 +246,10 @@ def bad_inputs(s):
                  "a density short of one float")
     expect_error(s, c, "scene.set", {"scene": "bad", "patch": {"cloud": {"grid": [257, 8, 8]}}},
                  E_LIMIT, "cloud.grid", "a grid over limits.cloud_side")
+    for huge in (100000, 1e300):
+        expect_error(s, c, "scene.set",
+                     {"scene": "bad", "patch": {"cloud": {"grid": [1, 1, huge]}}},
+                     E_LIMIT, "cloud.grid", "a side of %g" % huge)
     expect_error(s, c, "scene.set", {"scene": "bad", "patch": {"cloud": {"grid": [8.5, 8, 8]}}},
                  E_PARAMS, "cloud.grid", "a fractional grid")
     expect_error(s, c, "scene.set", {"scene": "bad", "patch": {"cloud": {"grid": [0, 8, 8]}}},
@@ -264,6 +268,16 @@ def bad_inputs(s):
         s.check(get(c, "bad", f)[1] == before[f], "refused inputs left %s unchanged" % f)
     # A scene without a cloud.
     c.ok("scene.create", {"name": "nocloud"})
+    # A disabled cloud has no cells: its grid is held to the limit once it is enabled (so that
+    # the default grid cannot break a server with a smaller cloud_side), and to the most any
+    # server allows (1024) at once.
+    c.ok("scene.set", {"scene": "nocloud", "patch": {"cloud": {"grid": [300, 8, 8]}}})
+    expect_error(s, c, "scene.set", {"scene": "nocloud", "path": "cloud.enabled", "value": True},
+                 E_LIMIT, "cloud.grid", "enabling a cloud whose grid is over the limit")
+    expect_error(s, c, "scene.set",
+                 {"scene": "nocloud", "patch": {"cloud": {"grid": [2000, 8, 8]}}},
+                 E_LIMIT, "cloud.grid", "a disabled cloud's side over 1024")
+    c.ok("scene.set", {"scene": "nocloud", "patch": {"cloud": {"grid": [64, 64, 64]}}})
     expect_error(s, c, "cloud.get_cells", {"scene": "nocloud", "field": "cld"}, E_PARAMS,
                  "scene", "get_cells without a cloud")
     expect_error(s, c, "cloud.set_cells",

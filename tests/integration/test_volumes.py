@@ -128,6 +128,11 @@ def bad_volumes(s):
     refused(dict(good, file="../ok.f32"), "volumes.1.file", "a path out of the data directory")
     refused(dict(good, file="/etc/passwd"), "volumes.1.file", "an absolute path")
     refused(dict(good, file="missing.f32"), "volumes.1.file", "a missing file")
+    # A noise volume reads no file, but what it holds is checked all the same.
+    refused({"source": "noise", "file": "../../etc/passwd"}, "volumes.1.file",
+            "a noise volume naming a file out of the data directory")
+    refused({"source": "noise", "dims": [2.5, 1, 1]}, "volumes.1.dims.0",
+            "a noise volume with fractional dims")
     refused({"bounds": {"min": [0, 0, 0], "max": [1, -1, 1]}}, "volumes.1.bounds.max",
             "inverted bounds")
     refused({"density": -1}, "volumes.1.density", "negative density")
@@ -217,6 +222,13 @@ def discover(s):
     text = mock.dumps(doc)
     for word in ("phase_g", "noise_scale", "1/world unit", "cloud_side"):
         s.check(word in text, "rpc.discover documents %s" % word)
+    # The grid sides are published with the server's own limit, as integers.
+    scene = doc["components"]["schemas"]["Scene"]["properties"]
+    side = c.ok("server.info")[0]["limits"]["cloud_side"]
+    for what, v in (("cloud.grid", scene["cloud"]["properties"]["grid"]),
+                    ("volumes[].dims", scene["volumes"]["items"]["properties"]["dims"])):
+        s.eq(v["items"].get("type"), "integer", "%s sides are integers" % what)
+        s.eq(v["items"].get("maximum"), side, "%s sides are bounded by limits.cloud_side" % what)
 
 
 if __name__ == "__main__":
