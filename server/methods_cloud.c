@@ -41,7 +41,21 @@ static const cJSON *get(const cJSON *o, const char *name) {
   return cJSON_GetObjectItemCaseSensitive(o, name);
 }
 
-/* Worker thread: the steps and the density. */
+/* How many of a job's last 'frames' simulation steps have a density worth computing when each
+ * keeps the fraction 'keep' of the one before: those before weigh keep^m < 2^-24 together,
+ * below a float's resolution of the density shown. */
+static unsigned frames_counted(float keep, unsigned frames) {
+  double m = ceil(-24.0 * M_LN2 / log((double)keep));
+  return m < (double)frames ? (unsigned)m : frames;
+}
+
+/*
+ * Worker thread: the steps and the density. The density shown is blended once per simulation
+ * step (cloud.steps_per_frame automaton steps), S = D + keep (S - D) with D the density of the
+ * cells after that step, so a sim.step of n steps shows what n calls of one step would. Only the
+ * last frames_counted steps need their D; once Kuromiya cells have no active cell left they
+ * stay as they are, and the steps left blend the same D at once: S = D + keep^left (S - D).
+ */
 static void cloud_run(renderer_t *r, job_t *j) {
   (void)r;
   cloud_job_t *cj = (cloud_job_t *)j;
@@ -51,37 +65,63 @@ static void cloud_run(renderer_t *r, job_t *j) {
     src = cj->prev->cells;
     shown = cj->prev->density;
   }
+  size_t n = cloud_cells_count(src);
+  unsigned per = cj->cfg.steps_per_frame ? cj->cfg.steps_per_frame : 1;
+  unsigned frames = cj->steps / per + (cj->steps % per != 0);
+  int blend =
+      cj->keep > 0 && frames > 0 && shown && memcmp(shown->dims, src->n, sizeof src->n) == 0;
+  unsigned counted = blend ? frames_counted(cj->keep, frames) : 1;
   cloud_cells_t *buf[2] = {NULL, NULL}, *cur = src;
-  density_grid_t *d = NULL;
+  density_grid_t *d = density_grid_new(src->n);
+  float *next = blend ? malloc(n * sizeof *next) : NULL;
+  if (!d || (blend && !next))
+    goto oom;
   if (cj->steps > 0) {
     buf[0] = cloud_cells_new(src->n);
     buf[1] = cj->steps > 1 ? cloud_cells_new(src->n) : NULL;
     if (!buf[0] || (cj->steps > 1 && !buf[1]))
       goto oom;
   }
-  for (unsigned i = 0; i < cj->steps; i++) {
-    cloud_cells_t *out = buf[i % 2];
-    cloud_step(cur, out, &cj->cfg.params);
-    cur = out;
-    /* Without active cells the Kuromiya rules change nothing more: the rest is counted only. */
-    if (cj->cfg.params.rules == CLOUD_KUROMIYA && !cloud_cells_any(cur, CLOUD_ACT)) {
-      cur->step += cj->steps - 1 - i;
+  if (blend)
+    memcpy(d->data, shown->data, n * sizeof *d->data);
+  unsigned taken = 0;
+  for (unsigned f = 0; f < frames; f++) {
+    int still = 0;
+    for (unsigned i = 0; i < per && taken < cj->steps && !still; i++) {
+      cloud_cells_t *out = buf[taken++ % 2];
+      cloud_step(cur, out, &cj->cfg.params);
+      cur = out;
+      still = cj->cfg.params.rules == CLOUD_KUROMIYA && !cloud_cells_any(cur, CLOUD_ACT);
+    }
+    /* The steps that count: the last 'counted', or all that are left once nothing changes. */
+    unsigned left = frames - f;
+    if (!still && left > counted)
+      continue;
+    float *target = blend ? next : d->data;
+    if (cloud_density(cur, cj->cfg.radius, target) != 0)
+      goto oom;
+    if (blend) {
+      cloud_blend(next, d->data, n, still ? powf(cj->keep, (float)left) : cj->keep);
+      next = d->data;
+      d->data = target;
+    }
+    if (still) {
+      cur->step += cj->steps - taken; /* The rest change nothing: counted only. */
       break;
     }
   }
-  d = density_grid_new(src->n);
-  if (!d || cloud_density(cur, cj->cfg.radius, d->data) != 0)
+  if (frames == 0 && cloud_density(cur, cj->cfg.radius, d->data) != 0)
     goto oom;
-  if (cj->keep > 0 && shown && memcmp(shown->dims, d->dims, sizeof d->dims) == 0)
-    cloud_blend(d->data, shown->data, cloud_cells_count(cur), cj->keep);
   cj->res->cells = cloud_cells_ref(cur);
   cj->res->density = d;
   cj->res->ok = 1;
+  free(next);
   cloud_cells_unref(buf[0]);
   cloud_cells_unref(buf[1]);
   return;
 oom:
   density_grid_unref(d);
+  free(next);
   cloud_cells_unref(buf[0]);
   cloud_cells_unref(buf[1]);
   j->code = PROTO_E_INTERNAL;

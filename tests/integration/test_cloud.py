@@ -200,6 +200,44 @@ def density_after_set(s):
     i = max(range(n), key=lambda x: before[x])
     s.check(abs(after[i] - 0.5 * before[i]) < 1e-6, "smoothing 0.5 shows half the new density",
             (after[i], before[i]))
+    # The blend is per simulation step, however the steps are grouped into calls: from 0, n
+    # steps towards the unchanging density D show D (1 - 0.5^n).
+    for steps in (3, 30):
+        c.ok("cloud.set_cells", {"scene": "dens", "field": "density",
+                                 "data": b64(struct.pack("<%df" % n, *([0.0] * n)))})
+        c.ok("sim.step", {"scene": "dens", "steps": steps}, timeout=60)
+        after = struct.unpack("<%df" % n, get(c, "dens", "density")[1])
+        worst = max(abs(a - b * (1 - 0.5 ** steps)) for a, b in zip(after, before))
+        s.check(worst < 1e-6, "sim.step of %d steps blends %d times" % (steps, steps),
+                "worst %g" % worst)
+
+
+@T
+def smoothing_per_step(s):
+    """A growing Dobashi cloud shows the same density after one sim.step of n steps as after n
+    calls of one step, with steps_per_frame 1 and 2: exactly while every step's density counts,
+    and within a float's resolution where the oldest weigh less (0.5^24)."""
+    c = s.srv.connect()
+    cloud = dict(rules="dobashi", p_ext=0.05, p_hum=0.05, p_act=0.02, seed=9, smoothing=0.5,
+                 metaball_radius=2)
+    for per in (1, 2):
+        for steps, exact in ((3, True), (40, False)):
+            names = ["sm%d_%d_%s" % (per, steps, k) for k in ("one", "many")]
+            for name in names:
+                make(c, name, grid=(12, 10, 8), steps_per_frame=per, **cloud)
+            c.ok("sim.step", {"scene": names[0], "steps": steps}, timeout=60)
+            for _ in range(steps):
+                c.ok("sim.step", {"scene": names[1]}, timeout=60)
+            one, many = (get(c, name, "density")[1] for name in names)
+            s.check(get(c, names[0], "cld")[1] == get(c, names[1], "cld")[1],
+                    "the same cells either way (%d steps of %d)" % (steps, per))
+            a = struct.unpack("<%df" % (len(one) // 4), one)
+            b = struct.unpack("<%df" % (len(many) // 4), many)
+            worst = max(abs(x - y) for x, y in zip(a, b))
+            s.check(worst == 0 if exact else worst < 1e-6,
+                    "one sim.step of %d shows the density of %d calls (steps_per_frame %d)" %
+                    (steps, steps, per), "worst %g" % worst)
+            s.check(max(a) > 0.01, "the cloud has density", max(a))
 
 
 @T
