@@ -38,30 +38,27 @@ char *files_read(const char *path, size_t max, size_t *len) {
   return buf;
 }
 
-int files_write_atomic(const char *path, const void *data, size_t n, const char **step) {
-  char tmp[PATH_MAX + 32];
-  snprintf(tmp, sizeof tmp, "%s.tmp%ld", path, (long)getpid());
-  int fd = open(tmp, O_WRONLY | O_CREAT | O_TRUNC | O_CLOEXEC, 0644);
-  if (fd < 0) {
-    *step = "create";
-    return errno;
+int files_temp_beside(const char *path, char *tmp, size_t len, mode_t mode) {
+  if ((size_t)snprintf(tmp, len, "%s.tmpXXXXXX", path) >= len) {
+    errno = ENAMETOOLONG;
+    return -1;
   }
-  const char *p = data;
-  int err = 0;
-  while (n > 0 && !err) {
-    ssize_t w = write(fd, p, n);
-    if (w < 0 && errno == EINTR)
-      continue;
-    if (w <= 0)
-      err = w < 0 ? errno : EIO;
-    else {
-      p += w;
-      n -= (size_t)w;
-    }
+  /* mkostemp opens with O_CREAT | O_EXCL under a random name: a link is not followed. */
+  int fd = mkostemp(tmp, O_CLOEXEC);
+  if (fd >= 0 && fchmod(fd, mode) != 0) {
+    int e = errno;
+    close(fd);
+    unlink(tmp);
+    errno = e;
+    return -1;
   }
-  if (!err && fsync(fd) != 0)
+  return fd;
+}
+
+int files_finish_atomic(int fd, const char *tmp, const char *path, const char **step) {
+  int err = fsync(fd) != 0 ? errno : 0;
+  if (close(fd) != 0 && !err)
     err = errno;
-  close(fd);
   if (err) {
     *step = "write";
     unlink(tmp);
@@ -82,4 +79,35 @@ int files_write_atomic(const char *path, const void *data, size_t n, const char 
     close(dfd);
   }
   return 0;
+}
+
+int files_write_all(int fd, const void *data, size_t n) {
+  const char *p = data;
+  while (n > 0) {
+    ssize_t w = write(fd, p, n);
+    if (w < 0 && errno == EINTR)
+      continue;
+    if (w <= 0)
+      return w < 0 ? errno : EIO;
+    p += w;
+    n -= (size_t)w;
+  }
+  return 0;
+}
+
+int files_write_atomic(const char *path, const void *data, size_t n, const char **step) {
+  char tmp[PATH_MAX + 32];
+  int fd = files_temp_beside(path, tmp, sizeof tmp, 0644);
+  if (fd < 0) {
+    *step = "create";
+    return errno;
+  }
+  int err = files_write_all(fd, data, n);
+  if (err) {
+    *step = "write";
+    close(fd);
+    unlink(tmp);
+    return err;
+  }
+  return files_finish_atomic(fd, tmp, path, step);
 }

@@ -847,15 +847,34 @@ static int files_ready(const cJSON *doc, scene_error_t *err) {
   return 0;
 }
 
+/* Whether every particle of 'p' (NULL: none) lies inside the bounds of checked 'fluid'. Returns
+ * 0, or -1 with 'err' at 'path' naming the first that does not, as 'what' holds it. */
+static int particles_fit(const cJSON *fluid, const particles_t *p, const char *path,
+                         const char *what, scene_error_t *err) {
+  double lo[3], hi[3];
+  vec3d(get(get(fluid, "bounds"), "min"), lo);
+  vec3d(get(get(fluid, "bounds"), "max"), hi);
+  for (uint32_t i = 0; p && i < p->count; i++) {
+    const float *q = p->pos + 3 * (size_t)i;
+    for (int k = 0; k < 3; k++)
+      if (!(q[k] >= lo[k] && q[k] <= hi[k]))
+        return set_err(err, PROTO_E_INVALID_PARAMS, path,
+                       "%s: particle %u at (%g, %g, %g) lies outside fluid.bounds (%g..%g on %c); "
+                       "move the particles first (fluid.set_particles)",
+                       what, i, q[0], q[1], q[2], lo[k], hi[k], "xyz"[k]);
+  }
+  return 0;
+}
+
 /*
  * Makes 'doc' (owned, taken in every case) the scene's document if it is valid. A new value of
  * fluid.initial (or the first document) replaces the particles by its blocks; a cloud newly
- * enabled, or with a new grid, seed or init, gets freshly seeded cells, or 'saved' and
- * 'saved_density' when given (a snapshot's). Fails with SCENE_DEFERRED or SCENE_DEFERRED_SEED,
+ * enabled, or with a new grid, seed or init, gets freshly seeded cells, or the cells of 'saved'
+ * (a snapshot's state; may be NULL), whose particles likewise replace fluid.initial's; new
+ * fluid.bounds must hold the particles kept. Fails with SCENE_DEFERRED or SCENE_DEFERRED_SEED,
  * having changed nothing, when a file or a seeding must be made elsewhere first.
  */
-static int commit(scene_t *s, cJSON *doc, cloud_cells_t *saved, density_grid_t *saved_density,
-                  scene_error_t *err) {
+static int commit(scene_t *s, cJSON *doc, const scene_saved_t *saved, scene_error_t *err) {
   particles_t *particles = s->particles;
   int reseed = 0;
   cloud_cells_t *cells = NULL;
@@ -863,13 +882,22 @@ static int commit(scene_t *s, cJSON *doc, cloud_cells_t *saved, density_grid_t *
   int seeded = 0;
   render_scene_t *rs = NULL;
   if (prepare(doc, err) != 0 || files_ready(doc, err) != 0 ||
-      cloud_prepare(s, doc, saved, saved_density, &cells, &density, &seeded, err) != 0)
+      cloud_prepare(s, doc, saved ? saved->cells : NULL, saved ? saved->density : NULL, &cells,
+                    &density, &seeded, err) != 0)
     goto fail;
-  const cJSON *init = get(get(doc, "fluid"), "initial");
-  if (!s->doc || !cJSON_Compare(init, get(get(s->doc, "fluid"), "initial"), 1)) {
+  const cJSON *fluid = get(doc, "fluid"), *old = s->doc ? get(s->doc, "fluid") : NULL;
+  if (saved && saved->particles) {
+    if (particles_fit(fluid, saved->particles, "file", "the snapshot's fluid section", err) != 0)
+      goto fail;
+    particles = particles_ref(saved->particles);
+    reseed = 1;
+  } else if (!old || !cJSON_Compare(get(fluid, "initial"), get(old, "initial"), 1)) {
     if (particles_seed_get(doc, &particles, err) != 0)
       goto fail;
     reseed = 1;
+  } else if (!cJSON_Compare(get(fluid, "bounds"), get(old, "bounds"), 1) &&
+             particles_fit(fluid, particles, "fluid.bounds", "fluid.bounds", err) != 0) {
+    goto fail; /* The tank may not shrink past the particles it holds. */
   }
   cJSON_SetNumberValue(get(get(doc, "fluid"), "count"), (particles ? (double)particles->count : 0));
   rs = compile(doc, particles, density, err);
@@ -931,7 +959,7 @@ scene_t *scene_create(const char *name, const cJSON *preset, scene_error_t *err)
   }
   snprintf(s->name, sizeof s->name, "%s", name);
   /* The first commit takes the version from 0 to 1, what scene.list shows for a new scene. */
-  if (commit(s, doc, NULL, NULL, err) != 0) {
+  if (commit(s, doc, NULL, err) != 0) {
     free(s);
     return NULL;
   }
@@ -1025,7 +1053,7 @@ int scene_patch(scene_t *s, const cJSON *patch, scene_error_t *err) {
     cJSON_Delete(doc);
     return set_err(err, PROTO_E_INTERNAL, "", "out of memory");
   }
-  return commit(s, doc, NULL, NULL, err);
+  return commit(s, doc, NULL, err);
 }
 
 /*
@@ -1096,22 +1124,22 @@ int scene_set_path(scene_t *s, const char *path, const cJSON *value, scene_error
       return set_err(err, PROTO_E_NOT_FOUND, path, "no such path in the scene: %s", path);
     return set_err(err, PROTO_E_INTERNAL, "", "out of memory");
   }
-  return commit(s, doc, NULL, NULL, err);
+  return commit(s, doc, NULL, err);
 }
 
 int scene_replace(scene_t *s, const cJSON *doc, scene_error_t *err) {
-  return scene_replace_with_cloud(s, doc, NULL, NULL, err);
+  return scene_replace_saved(s, doc, NULL, err);
 }
 
-int scene_replace_with_cloud(scene_t *s, const cJSON *doc, cloud_cells_t *cells,
-                             density_grid_t *density, scene_error_t *err) {
+int scene_replace_saved(scene_t *s, const cJSON *doc, const scene_saved_t *saved,
+                        scene_error_t *err) {
   clear_err(err);
   if (!cJSON_IsObject(doc))
     return set_err(err, PROTO_E_INVALID_PARAMS, "", "a scene document must be a JSON object");
   cJSON *copy = cJSON_Duplicate(doc, 1);
   if (!copy)
     return set_err(err, PROTO_E_INTERNAL, "", "out of memory");
-  return commit(s, copy, cells, density, err);
+  return commit(s, copy, saved, err);
 }
 
 /* A new snapshot equal to 'old' but for the clock and the waves, compiled afresh from 'doc'

@@ -103,10 +103,18 @@ int scene_particles_of(const cJSON *doc, particles_t **out);
 
 /* Replaces the whole document. Returns 0 or -1 with 'err'. */
 int scene_replace(scene_t *s, const cJSON *doc, scene_error_t *err);
-/* The same with the cloud's 'cells' and 'density' (references taken on success) in place of
- * freshly seeded ones when the document enables a cloud of their grid (scene.load). */
-int scene_replace_with_cloud(scene_t *s, const cJSON *doc, cloud_cells_t *cells,
-                             density_grid_t *density, scene_error_t *err);
+/* What a snapshot keeps beside its document (scene.load). */
+typedef struct scene_saved {
+  cloud_cells_t *cells;    /* The cloud's cells and density, in place of freshly seeded ones */
+  density_grid_t *density; /* when the document enables a cloud of their grid; or NULL. */
+  particles_t *particles;  /* The fluid's particles, in place of fluid.initial's; or NULL (a
+                              snapshot without a fluid section). They must lie inside the
+                              document's fluid.bounds (else path "file"). */
+} scene_saved_t;
+
+/* The same with the state 'saved' holds (references taken on success). */
+int scene_replace_saved(scene_t *s, const cJSON *doc, const scene_saved_t *saved,
+                        scene_error_t *err);
 
 /* Advances the clock: sim.time += steps * dt, sim.frame += steps, and the wave animations
  * with it (their current values written into the document); compiles one snapshot per call,

@@ -2,14 +2,13 @@
  * scene.save and scene.load: snapshots of a scene in the data directory. A snapshot is one
  * JSON header line, {"volfx_snapshot": 1, "scene": {...}, "sections": [...]}, followed by the
  * binary sections it lists, each {"name", "bytes", ...} and exactly 'bytes' long, in order:
- * simulation state that is not in the document (the cloud's cells and density). Files are written
+ * simulation state that is not in the document (the cloud's cells and density, the fluid's
+ * particles). Files are written
  * atomically (temporary file, fsync, rename, fsync of the directory) and all file I/O runs on
  * libuv's thread pool, never on the loop thread.
  */
 #include <errno.h>
-#include <fcntl.h>
 #include <math.h>
-#include <libgen.h>
 #include <limits.h>
 #include <stdio.h>
 #include <stdlib.h>
@@ -35,10 +34,12 @@ typedef struct snap_work {
   size_t len;
   int err; /* errno of the failed step, or 0. */
   const char *step;
-  /* The cloud section: save writes these (references) after the header; load reads them. */
+  /* The sections: save writes these (references) after the header; load reads them. */
   cloud_cells_t *cells;
   density_grid_t *density;
-  char bad[160]; /* load: why the sections are refused, "" when they are fine. */
+  particles_t *particles; /* NULL: no particles (save), no fluid section (load). */
+  int fluid;              /* save: write a fluid section. */
+  char bad[160];          /* load: why the sections are refused, "" when they are fine. */
 } snap_work_t;
 
 /* ---- The cloud section: hum, act and cld as packed little-endian 64-bit words (rows of
@@ -141,68 +142,106 @@ static void cloud_unsection(snap_work_t *w, const cJSON *sec, const unsigned cha
   }
 }
 
-static int write_all(int fd, const char *p, size_t n) {
-  while (n) {
-    ssize_t w = write(fd, p, n);
-    if (w < 0 && errno == EINTR)
-      continue;
-    if (w <= 0)
-      return -1;
-    p += w;
-    n -= (size_t)w;
+/* ---- The fluid section: 'count' positions, then as many velocities, each x, y, z as
+ * little-endian f32 (as fluid.set_particles takes them). ---- */
+
+static size_t fluid_section_bytes(const particles_t *p) {
+  return p ? 24 * (size_t)p->count : 0;
+}
+
+/* Thread pool: the section's bytes (one byte when there are no particles), or NULL on OOM. */
+static unsigned char *fluid_section(const particles_t *p) {
+  size_t n = p ? 3 * (size_t)p->count : 0;
+  unsigned char *buf = malloc(fluid_section_bytes(p) + 1), *q = buf;
+  if (!buf)
+    return NULL;
+  for (int k = 0; k < 2; k++)
+    for (size_t i = 0; i < n; i++, q += 4) {
+      uint32_t u;
+      memcpy(&u, k ? &p->vel[i] : &p->pos[i], 4);
+      put_le(q, u, 4);
+    }
+  return buf;
+}
+
+/* Thread pool: the fluid section described by 'sec', checked: a count the bytes match, every
+ * value finite (the bounds are the document's, checked by the commit). Fills w->particles, or
+ * w->bad. */
+static void fluid_unsection(snap_work_t *w, const cJSON *sec, const unsigned char *bytes,
+                            size_t len) {
+  const cJSON *count = cJSON_GetObjectItem(sec, "count");
+  if (!cJSON_IsNumber(count) || count->valuedouble < 0 || count->valuedouble > UINT32_MAX ||
+      count->valuedouble != (uint32_t)count->valuedouble) {
+    snprintf(w->bad, sizeof w->bad, "the fluid section's count is not a number of particles");
+    return;
   }
-  return 0;
+  uint32_t n = (uint32_t)count->valuedouble;
+  if (len != 24 * (size_t)n) {
+    snprintf(w->bad, sizeof w->bad, "the fluid section has %zu bytes, not %zu for %u particles",
+             len, 24 * (size_t)n, n);
+    return;
+  }
+  w->particles = particles_new(n);
+  if (!w->particles) {
+    snprintf(w->bad, sizeof w->bad, "out of memory for %u particles", n);
+    return;
+  }
+  for (size_t i = 0; i < 6 * (size_t)n; i++) {
+    uint32_t u = (uint32_t)get_le(bytes + 4 * i, 4);
+    float x;
+    memcpy(&x, &u, 4);
+    if (!isfinite(x)) {
+      snprintf(w->bad, sizeof w->bad,
+               "the fluid section's particle %zu has a %s that is not finite",
+               i % (3 * (size_t)n) / 3, i < 3 * (size_t)n ? "position" : "velocity");
+      return;
+    }
+    (i < 3 * (size_t)n ? w->particles->pos : w->particles->vel)[i % (3 * (size_t)n)] = x;
+  }
 }
 
 /* Thread pool: writes the snapshot next to its final name, then renames it into place. */
 static void save_work(uv_work_t *req) {
   snap_work_t *w = req->data;
   char tmp[PATH_MAX + 32];
-  snprintf(tmp, sizeof tmp, "%s.tmp%ld", w->path, (long)getpid());
-  int fd = open(tmp, O_WRONLY | O_CREAT | O_TRUNC | O_CLOEXEC, 0600);
+  int fd = files_temp_beside(w->path, tmp, sizeof tmp, 0600);
   if (fd < 0) {
     w->err = errno;
     w->step = "create";
     return;
   }
-  unsigned char *sec = NULL;
-  if (w->cells) {
-    sec = cloud_section(w->cells, w->density);
-    if (!sec) {
-      w->err = ENOMEM;
-      w->step = "encode";
-      close(fd);
-      unlink(tmp);
-      return;
-    }
-  }
-  int bad = write_all(fd, w->text, w->len) != 0 ||
-            (sec && write_all(fd, (const char *)sec, cloud_section_bytes(w->cells)) != 0);
-  free(sec);
-  if (w->cells)
-    w->len += cloud_section_bytes(w->cells);
-  if (bad || fsync(fd) != 0) {
-    w->err = errno;
+  unsigned char *sec = w->cells ? cloud_section(w->cells, w->density) : NULL;
+  unsigned char *fsec = w->fluid ? fluid_section(w->particles) : NULL;
+  if ((w->cells && !sec) || (w->fluid && !fsec)) {
+    w->err = ENOMEM;
+    w->step = "encode";
+  } else {
+    w->err = files_write_all(fd, w->text, w->len);
+    if (!w->err && sec)
+      w->err = files_write_all(fd, sec, cloud_section_bytes(w->cells));
+    if (!w->err && fsec)
+      w->err = files_write_all(fd, fsec, fluid_section_bytes(w->particles));
     w->step = "write";
+  }
+  free(sec);
+  free(fsec);
+  if (w->err) {
     close(fd);
     unlink(tmp);
     return;
   }
-  close(fd);
-  if (rename(tmp, w->path) != 0) {
-    w->err = errno;
-    w->step = "rename";
-    unlink(tmp);
-    return;
-  }
-  /* The rename is durable once the directory is synced. */
-  char dir[PATH_MAX];
-  snprintf(dir, sizeof dir, "%s", w->path);
-  int dfd = open(dirname(dir), O_RDONLY | O_DIRECTORY | O_CLOEXEC);
-  if (dfd >= 0) {
-    fsync(dfd);
-    close(dfd);
-  }
+  if (w->cells)
+    w->len += cloud_section_bytes(w->cells);
+  w->len += fluid_section_bytes(w->particles);
+  w->err = files_finish_atomic(fd, tmp, w->path, &w->step);
+}
+
+static void snap_work_free(snap_work_t *w) {
+  free(w->text);
+  cloud_cells_unref(w->cells);
+  density_grid_unref(w->density);
+  particles_unref(w->particles);
+  free(w);
 }
 
 static void save_done(uv_work_t *req, int status) {
@@ -217,10 +256,7 @@ static void save_done(uv_work_t *req, int status) {
     cJSON_AddNumberToObject(r, "bytes", (double)w->len);
     call_result(call, r);
   }
-  free(w->text);
-  cloud_cells_unref(w->cells);
-  density_grid_unref(w->density);
-  free(w);
+  snap_work_free(w);
 }
 
 static snap_work_t *work_for(call_t *call, int must_exist) {
@@ -270,12 +306,18 @@ static void scene_save(call_t *call) {
     cJSON_AddNumberToObject(sec, "step", (double)w->cells->step);
     cJSON_AddItemToArray(sections, sec);
   }
+  /* The particles, also immutable; a section of none says the scene had none. */
+  w->fluid = 1;
+  w->particles = particles_ref(e->scene->particles);
+  cJSON *fsec = cJSON_CreateObject();
+  cJSON_AddStringToObject(fsec, "name", "fluid");
+  cJSON_AddNumberToObject(fsec, "bytes", (double)fluid_section_bytes(w->particles));
+  cJSON_AddNumberToObject(fsec, "count", w->particles ? w->particles->count : 0);
+  cJSON_AddItemToArray(sections, fsec);
   w->text = proto_print_line(head, &w->len);
   cJSON_Delete(head);
   if (!w->text) {
-    cloud_cells_unref(w->cells);
-    density_grid_unref(w->density);
-    free(w);
+    snap_work_free(w);
     call_error(call, PROTO_E_INTERNAL, NULL, "internal error: out of memory");
     return;
   }
@@ -308,11 +350,12 @@ static void load_work(uv_work_t *req) {
       break;
     }
     size_t n = (size_t)bytes->valuedouble;
-    if (strcmp(name, "cloud") == 0 && !w->cells) {
+    if (strcmp(name, "cloud") == 0 && !w->cells)
       cloud_unsection(w, sec, (const unsigned char *)w->text + off, n);
-      if (w->bad[0])
-        break;
-    }
+    else if (strcmp(name, "fluid") == 0 && !w->particles)
+      fluid_unsection(w, sec, (const unsigned char *)w->text + off, n);
+    if (w->bad[0])
+      break;
     off += n;
   }
   cJSON_Delete(head);
@@ -358,6 +401,11 @@ static void load_done(uv_work_t *req, int status) {
     } else if (w->bad[0]) {
       call_error(call, PROTO_E_INVALID_PARAMS, "file", "invalid params: file: \"%s\": %s", w->file,
                  w->bad);
+    } else if (w->particles && w->particles->count > call->srv->cfg.limits.particles) {
+      call_error(call, PROTO_E_LIMIT, "file",
+                 "%s: file: \"%s\" holds %u particles, over limits.particles (%u)",
+                 proto_err_message(PROTO_E_LIMIT), w->file, w->particles->count,
+                 call->srv->cfg.limits.particles);
     } else if (w->cells && !cloud_fits(doc, w->cells)) {
       call_error(call, PROTO_E_INVALID_PARAMS, "file",
                  "invalid params: file: \"%s\": the cloud section does not match cloud.grid, "
@@ -368,7 +416,8 @@ static void load_done(uv_work_t *req, int status) {
       defer_want_t want;
       defer_arm(call, &want);
       /* The cells saved take the place of freshly seeded ones (cloud_fits checked their grid). */
-      int rc = scene_replace_with_cloud(e->scene, doc, w->cells, w->density, &err);
+      scene_saved_t saved = {w->cells, w->density, w->particles};
+      int rc = scene_replace_saved(e->scene, doc, &saved, &err);
       if (defer_check(call, rc, &err, &want)) {
         /* A file the snapshot names is being read: the call runs again after, from the top. */
       } else if (rc != 0) {
@@ -390,10 +439,7 @@ static void load_done(uv_work_t *req, int status) {
     }
   }
   cJSON_Delete(head);
-  free(w->text);
-  cloud_cells_unref(w->cells);
-  density_grid_unref(w->density);
-  free(w);
+  snap_work_free(w);
   conn_release(c);
   conn_unref(c);
 }

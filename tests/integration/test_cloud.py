@@ -621,7 +621,7 @@ def snapshot_carries_cells(s):
         data = f.read()
     head = json.loads(data.split(b"\n", 1)[0])
     secs = head.get("sections") or []
-    s.eq([x.get("name") for x in secs], ["cloud"], "the snapshot lists a cloud section")
+    s.eq([x.get("name") for x in secs], ["cloud", "fluid"], "the snapshot lists its sections")
     s.eq(r.get("bytes"), len(data), "save reports every byte, sections included")
     c.ok("sim.step", {"scene": "snap", "steps": 3}, timeout=60)
     s.check(get(c, "snap", "cld")[1] != saved["cld"][1], "the cloud moved on after the save")

@@ -13,6 +13,7 @@ fluid can be deleted and the server shut down cleanly.
 """
 
 import base64
+import json
 import math
 import os
 import struct
@@ -182,10 +183,82 @@ def bad_inputs(s):
     expect_error(s, c, "scene.set",
                  {"scene": "bad", "path": "fluid.bounds.max", "value": [5, -6, 5]}, E_PARAMS,
                  "fluid.bounds.max", "bounds max below min")
+    # The tank may not shrink past the particles it holds (they could never be stepped).
+    expect_error(s, c, "scene.set",
+                 {"scene": "bad", "patch": {"fluid": {"bounds": {"min": [-1, -1, -1],
+                                                                 "max": [-0.9, 1, 1]}}}},
+                 E_PARAMS, "fluid.bounds", "bounds that leave particles outside")
     s.check(c.ok("fluid.get_particles", {"scene": "bad"})[1] == before,
             "refused inputs left the particles unchanged")
     s.eq(c.ok("scene.get", {"scene": "bad"})[0], doc, "refused inputs left the document unchanged")
     c.ok("scene.delete", {"name": "bad"})
+
+
+@T
+def snapshot_carries_particles(s):
+    """scene.save writes the particles (positions and velocities) in a fluid section, and
+    scene.load brings them back exactly, into the same scene or another; a bad section is
+    refused and nothing changes."""
+    c = s.srv.connect()
+    fresh(c, "snapf")
+    c.ok("scene.set", {"scene": "snapf", "path": "fluid.enabled", "value": True})
+    pts = block(6)
+    c.ok("fluid.set_particles", {"scene": "snapf", "positions": b64(pts)})
+    c.ok("sim.step", {"scene": "snapf", "steps": 3}, timeout=120)
+    saved = {f: c.ok("fluid.get_particles", {"scene": "snapf", "field": f})[1]
+             for f in ("positions", "velocities")}
+    r, _ = c.ok("scene.save", {"scene": "snapf", "file": "fluid.snap"})
+    path = os.path.join(s.srv.data_dir, "fluid.snap")
+    with open(path, "rb") as f:
+        data = f.read()
+    head = json.loads(data.split(b"\n", 1)[0])
+    secs = {x.get("name"): x for x in head.get("sections") or []}
+    s.eq((secs.get("fluid") or {}).get("count"), len(pts), "the fluid section counts the particles")
+    s.eq((secs.get("fluid") or {}).get("bytes"), 24 * len(pts), "positions and velocities, f32")
+    s.check(data.endswith(saved["positions"] + saved["velocities"]),
+            "the section holds the particles' bytes as fluid.get_particles gives them")
+    s.eq(r.get("bytes"), len(data), "save reports every byte")
+    c.ok("fluid.set_particles", {"scene": "snapf", "positions": b64(pts[:10])})
+    c.ok("scene.load", {"scene": "snapf", "file": "fluid.snap"})
+    for f in ("positions", "velocities"):
+        got = c.ok("fluid.get_particles", {"scene": "snapf", "field": f})[1]
+        s.check(got == saved[f], "load restores the %s" % f)
+    s.eq(c.ok("scene.get", {"scene": "snapf", "path": "fluid.count"})[0], len(pts),
+         "fluid.count follows")
+    # Into another scene; a step from there is the step from the saved state.
+    c.ok("sim.step", {"scene": "snapf"}, timeout=120)
+    stepped = c.ok("fluid.get_particles", {"scene": "snapf"})[1]
+    c.ok("scene.create", {"name": "snapg"})
+    c.ok("scene.load", {"scene": "snapg", "file": "fluid.snap"})
+    s.check(c.ok("fluid.get_particles", {"scene": "snapg"})[1] == saved["positions"],
+            "another scene loads the same particles")
+    c.ok("sim.step", {"scene": "snapg"}, timeout=120)
+    s.check(c.ok("fluid.get_particles", {"scene": "snapg"})[1] == stepped,
+            "and steps them as the scene they were saved from")
+    # A scene saved without particles loads without them.
+    c.ok("scene.create", {"name": "snap0"})
+    c.ok("scene.save", {"scene": "snap0", "file": "empty.snap"})
+    c.ok("scene.load", {"scene": "snapg", "file": "empty.snap"})
+    s.eq(c.ok("scene.get", {"scene": "snapg", "path": "fluid.count"})[0], 0,
+         "a snapshot of no particles leaves none")
+    # Bad sections: cut short, a NaN, particles outside the saved bounds.
+    before = c.ok("fluid.get_particles", {"scene": "snapf"})[1]
+    body = data[len(data) - 24 * len(pts):]
+    line = data[:len(data) - len(body)]
+    bads = {"short.snap": data[:-4],
+            "nan.snap": line + body[:8] + struct.pack("<f", float("nan")) + body[12:]}
+    hd = json.loads(line)
+    hd["scene"]["fluid"]["bounds"] = {"min": [-1, -1, -1], "max": [-0.9, 1, 1]}
+    bads["outside.snap"] = (json.dumps(hd) + "\n").encode() + body
+    for name, content in bads.items():
+        with open(os.path.join(s.srv.data_dir, name), "wb") as f:
+            f.write(content)
+        expect_error(s, c, "scene.load", {"scene": "snapf", "file": name}, E_PARAMS, "file",
+                     "a snapshot %s" % name)
+    s.check(c.ok("fluid.get_particles", {"scene": "snapf"})[1] == before,
+            "refused snapshots left the particles")
+    for name in ("snapf", "snapg", "snap0"):
+        c.ok("scene.delete", {"name": name})
 
 
 def table1_layers(n, origin, spacing, nx=24, nz=24):

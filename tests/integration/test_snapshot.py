@@ -56,6 +56,39 @@ def round_trip(s):
 
 
 @T
+def concurrent_saves(s):
+    """Several connections saving the same file at once all succeed and leave one whole
+    snapshot (each writes a temporary file of its own), and a link planted beside it is never
+    written through."""
+    outside = os.path.join(os.path.dirname(s.srv.data_dir), "outside-%d" % os.getpid())
+    with open(outside, "w") as f:
+        f.write("untouched")
+    for suffix in (".tmp%d" % s.srv.pid, ".tmp", ".tmpXXXXXX"):
+        os.symlink(outside, os.path.join(s.srv.data_dir, "same.snap" + suffix))
+    conns = [s.srv.connect() for _ in range(4)]
+    for i, c in enumerate(conns):
+        c.ok("scene.create", {"name": "cs%d" % i})
+    for _ in range(10):
+        for i, c in enumerate(conns):
+            c.send(c.request("scene.save", {"scene": "cs%d" % i, "file": "same.snap"}))
+    answers = [c.recv_response(timeout=60)[0] for _ in range(10) for c in conns]
+    bad = [a for a in answers if "result" not in a]
+    s.check(not bad, "40 concurrent saves of one file all succeed", mock.short(bad[:2]))
+    with open(os.path.join(s.srv.data_dir, "same.snap"), "rb") as f:
+        head = json.loads(f.read().split(b"\n", 1)[0])
+    s.check(head.get("name", "").startswith("cs"), "the file is one whole snapshot")
+    with open(outside) as f:
+        s.eq(f.read(), "untouched", "no link beside the file was written through")
+    leftovers = [n for n in os.listdir(s.srv.data_dir)
+                 if n.startswith("same.snap.tmp") and not os.path.islink(
+                     os.path.join(s.srv.data_dir, n))]
+    s.eq(leftovers, [], "no temporary file is left")
+    for i, c in enumerate(conns):
+        c.ok("scene.delete", {"name": "cs%d" % i})
+        c.close()
+
+
+@T
 def bad_files(s):
     c = s.srv.connect()
     before = c.ok("scene.get", {})[0]
