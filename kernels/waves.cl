@@ -363,13 +363,13 @@ static inline void wave_store(const vfx_frame_t *f, __global float *restrict lin
 /*
  * One packet of WAVES_PACKET pixels per work-item, at pixel (WAVES_PACKET * global x, global y),
  * over the padded buffers of the objects pass: 'depth' ends every ray (+INFINITY where nothing
- * opaque was hit); 'waves' holds 'nwaves' records of WAVE_STRIDE floats made for this frame's eye,
- * and 'lists', for work-group g (numbered row by row), the number of waves to draw at
- * (nwaves + 1) g and their indices after it. 'mode' is a set of WAVES_* bits; 'hout' receives the
- * summed unclamped H when it asks for it; 'rgba8', 'scale' (2^exposure) and 'op' (TONE_OP_*) serve
- * WAVES_TONEMAP, and with WAVES_EMPTY 'depth' and 'linear' are not read. Each wave adds
- * wave_glow(H) times its colour to the linear RGB: its full colour where H >= c, fading smoothly
- * to nothing as H falls to 0.
+ * opaque was hit), and so does the camera's far distance; 'waves' holds 'nwaves' records of
+ * WAVE_STRIDE floats made for this frame's eye, and 'lists', for work-group g (numbered row by
+ * row), the number of waves to draw at (nwaves + 1) g and their indices after it. 'mode' is a set
+ * of WAVES_* bits; 'hout' receives the summed unclamped H when it asks for it; 'rgba8', 'scale'
+ * (2^exposure) and 'op' (TONE_OP_*) serve WAVES_TONEMAP, and with WAVES_EMPTY 'depth' and 'linear'
+ * are not read. Each wave adds wave_glow(H) times its colour to the linear RGB: its full colour
+ * where H >= c, fading smoothly to nothing as H falls to 0.
  */
 __kernel void waves(vfx_frame_t f, __global const float *restrict waves, int nwaves,
                     __global const int *restrict lists, __global const float *restrict depth,
@@ -379,7 +379,8 @@ __kernel void waves(vfx_frame_t f, __global const float *restrict waves, int nwa
   int o = y * f.pitch + x0;
   wfloat dx, dy, dz;
   wave_rays(&f, x0, y, &dx, &dy, &dz);
-  wfloat tmax = mode & WAVES_EMPTY ? (wfloat)INFINITY : WAVE_LOAD(0, depth + o);
+  /* Nothing is drawn beyond the camera's far distance, glow included. */
+  wfloat tmax = fmin(mode & WAVES_EMPTY ? (wfloat)INFINITY : WAVE_LOAD(0, depth + o), f.far_);
   wfloat hsum = 0.0f, gr = 0.0f, gg = 0.0f, gb = 0.0f;
   int touched = 0;
   __global const int *list =
@@ -410,7 +411,8 @@ __kernel void waves_march(vfx_frame_t f, __global const float *restrict waves, i
   int o = y * f.pitch + x0;
   wfloat dx, dy, dz;
   wave_rays(&f, x0, y, &dx, &dy, &dz);
-  wfloat tmax = mode & WAVES_EMPTY ? (wfloat)INFINITY : WAVE_LOAD(0, depth + o);
+  /* Nothing is drawn beyond the camera's far distance, glow included. */
+  wfloat tmax = fmin(mode & WAVES_EMPTY ? (wfloat)INFINITY : WAVE_LOAD(0, depth + o), f.far_);
   wfloat hsum = 0.0f, gr = 0.0f, gg = 0.0f, gb = 0.0f;
   int touched = 0;
   __global const int *list =

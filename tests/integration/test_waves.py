@@ -215,7 +215,7 @@ def check_frame(s, c, name, cam, waves, w, h, spheres=(), what=""):
     near = cam.get("near", 0.1)
     ref = []
     for d in rays:
-        tmax = math.inf
+        tmax = cam.get("far", math.inf)  # Nothing is drawn beyond the far distance.
         for centre, radius in spheres:  # The first hit of each opaque sphere ends the ray.
             oc = sub(eye, centre)
             bq = dot(oc, d)
@@ -321,6 +321,23 @@ def occlusion(s):
         i = 6 * 16 + 8
         s.check(free[i] > got[i] * 1.2, "the sphere cuts the integral short",
                 "%g without it, %g with" % (free[i], got[i]))
+
+
+@T
+def far_ends_the_glow(s):
+    """camera.far ends the integral as it ends the objects: a far distance through the capsule
+    cuts H there, and one before it leaves nothing."""
+    c = s.srv.connect()
+    wave = {"center": [0, 0, 0], "direction": [1, 0, 0], "a": 1, "b": 1, "length": 1,
+            "radius": 1.2, "softening": 0.1, "clamp": 5}
+    cam = {"eye": [0.5, 0.3, 6], "target": [0.5, 0, 0], "up": [0, 1, 0], "fov_y": 40,
+           "near": 0.1, "far": 6.0}
+    scene_with(c, "far", cam, [wave])
+    check_frame(s, c, "far", cam, [wave], 14, 10, what="far through the capsule")
+    c.ok("scene.set", {"scene": "far", "path": "camera.far", "value": 4.5})
+    _, raw = c.ok("render", {"scene": "far", "width": 14, "height": 10, "aov": "wave_h",
+                             "format": "f32"}, timeout=120)
+    s.check(max(floats(raw or b"")) == 0, "far before the capsule leaves no glow")
 
 
 @T
