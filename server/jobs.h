@@ -7,6 +7,9 @@
 
 #include "server.h"
 
+/* render.sequence jobs running at once (server.info limits.jobs_running). */
+#define JOBS_MAX_RUNNING 8
+
 /* Jobs running now. */
 int jobs_running(const server_t *s);
 /* The connection closed: its jobs run on, without progress notifications. */

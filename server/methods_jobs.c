@@ -35,8 +35,7 @@
 #include "jobs.h"
 #include "log.h"
 
-/* Running jobs at once; finished ones kept for job.list. */
-#define JOBS_MAX_RUNNING 8
+/* Finished jobs kept for job.list. */
 #define JOBS_KEEP_ENDED 16
 /* Delay before trying again when the render queue is full. */
 #define JOBS_RETRY_MS 5
@@ -428,7 +427,8 @@ static void render_sequence(call_t *call) {
     return;
   }
   if (running_jobs(s, NULL) >= JOBS_MAX_RUNNING) {
-    call_error(call, PROTO_E_LIMIT, NULL, "limit exceeded: at most %d jobs run at once",
+    call_error(call, PROTO_E_LIMIT, NULL,
+               "limit exceeded: at most %d jobs run at once (limits.jobs_running)",
                JOBS_MAX_RUNNING);
     return;
   }
@@ -442,6 +442,11 @@ static void render_sequence(call_t *call) {
   }
   render_scene_unref(probe.scene);
   char why[512];
+  if (!dir[0]) {
+    call_error(call, PROTO_E_INVALID_PARAMS, "dir",
+               "invalid params: dir: must name a directory under the data directory");
+    return;
+  }
   if (!s->cfg.data_dir[0]) {
     call_error(call, PROTO_E_INVALID_PARAMS, "dir",
                "invalid params: the server has no data directory (--data) to write frames to");

@@ -124,8 +124,10 @@ static void scene_set_m(call_t *call) {
     defer_arm(call, &want);
     rc = scene_set_path(e->scene, path->valuestring, value, &err);
   } else {
-    call_error(call, PROTO_E_INVALID_PARAMS, patch ? "patch" : "path",
-               "invalid params: give either 'patch', or both 'path' and 'value'");
+    /* The member that is missing, or the one too many beside a patch. */
+    const char *at = patch ? (path ? "path" : "value") : path ? "value" : value ? "path" : "patch";
+    call_error(call, PROTO_E_INVALID_PARAMS, at,
+               "invalid params: %s: give either 'patch', or both 'path' and 'value'", at);
     return;
   }
   if (defer_check(call, rc, &err, &want))

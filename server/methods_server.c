@@ -21,6 +21,7 @@ static cJSON *limits_json(const server_t *s) {
   cJSON_AddNumberToObject(l, "idle_timeout_s", c->idle_timeout_s);
   cJSON_AddNumberToObject(l, "render_queue", c->render_queue);
   cJSON_AddNumberToObject(l, "subscriptions_per_connection", FRAMES_MAX_PER_CONN);
+  cJSON_AddNumberToObject(l, "jobs_running", JOBS_MAX_RUNNING);
   return l;
 }
 

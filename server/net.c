@@ -271,6 +271,14 @@ static void finish_with_error(conn_t *c, int code, const char *msg, const char *
 /* Dispatches the complete lines the reader holds, in order, until none is left or a call
  * holds the connection: then reading stops, so a client pipelining behind a held request is
  * slowed by TCP rather than buffered here without bound. */
+/* Whether a line holds only JSON's insignificant whitespace (RFC 8259: space, tab, CR, LF). */
+static int blank(const char *line, size_t len) {
+  for (size_t i = 0; i < len; i++)
+    if (line[i] != ' ' && line[i] != '\t' && line[i] != '\r' && line[i] != '\n')
+      return 0;
+  return 1;
+}
+
 static void pump(conn_t *c) {
   /* Calls may close the connection; hold a reference while lines are dispatched. */
   c->refs++;
@@ -287,8 +295,8 @@ static void pump(conn_t *c) {
       finish_with_error(c, PROTO_E_LIMIT, msg, "line_bytes");
       break;
     }
-    if (len == 0)
-      continue; /* Blank lines are keep-alives. */
+    if (blank(line, len))
+      continue; /* Blank lines, of nothing or only JSON whitespace, are keep-alives. */
     dispatch_line(c, line, len);
     if (c->closing || c->draining)
       break;

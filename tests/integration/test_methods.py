@@ -25,7 +25,8 @@ T = suite.test
 
 LIMIT_DEFAULTS = {"line_bytes": 1 << 20, "frame_side": 4096, "particles": 1 << 20,
                   "cloud_side": 256, "connections": 256, "output_bytes": 64 << 20,
-                  "idle_timeout_s": 300, "render_queue": 64}
+                  "idle_timeout_s": 300, "render_queue": 64, "subscriptions_per_connection": 16,
+                  "jobs_running": 8}
 # A frame's tone map is its own "tonemap" pass, or part of the "waves" pass when that is last.
 WORK_MS_KEYS = ("objects", "readback", "encode", "total", "queue")
 
@@ -290,6 +291,11 @@ def scene_set(s):
         ({"path": "objects.1", "value": {"shape": "cone"}}, "objects.1.shape"),
         ({"path": "camera.zoom", "value": 2}, "camera.zoom"),
     ]
+    # Half of a path-and-value pair, or both forms at once: data.path names what is wrong.
+    for params, path in (({"path": "camera.fov_y"}, "value"), ({"value": 3}, "path"),
+                         ({"patch": {}, "path": "camera.fov_y", "value": 3}, "path"), ({}, "patch")):
+        expect_error(s, c, "scene.set", dict(params, scene="s1"), E_PARAMS, path,
+                     "scene.set %s" % short(params, 80))
     for params, path in bad:
         p = dict(params, scene="s1")
         # Setting an undescribed member by path may be "not found" as well as "invalid".

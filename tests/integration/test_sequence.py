@@ -205,6 +205,7 @@ def bad_requests(s):
         (dict(base, step=0), E_PARAMS, "step"),
         (dict(base, dir="../out"), E_PARAMS, "dir"),
         (dict(base, dir="/tmp/x"), E_PARAMS, "dir"),
+        (dict(base, dir=""), E_PARAMS, "dir"),
         ({k: v for k, v in base.items() if k != "dir"}, E_PARAMS, "dir"),
         (dict(base, format="f32"), E_PARAMS, "format"),
         (dict(base, width=100000), E_LIMIT, "width"),
@@ -213,6 +214,8 @@ def bad_requests(s):
     ]
     for params, code, path in cases:
         expect_error(s, c, "render.sequence", params, code, path)
+    s.eq(c.ok("scene.get", {"scene": "bad", "path": "sim.frame"})[0], 0,
+         "refused jobs did not step the scene")
     # A scene past 'first' cannot go back.
     c.ok("sim.step", {"scene": "bad", "steps": 5})
     expect_error(s, c, "render.sequence", dict(base, first=2, last=8), E_PARAMS, "first")
