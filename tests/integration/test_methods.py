@@ -292,8 +292,9 @@ def scene_set(s):
         ({"path": "camera.zoom", "value": 2}, "camera.zoom"),
     ]
     # Half of a path-and-value pair, or both forms at once: data.path names what is wrong.
-    for params, path in (({"path": "camera.fov_y"}, "value"), ({"value": 3}, "path"),
-                         ({"patch": {}, "path": "camera.fov_y", "value": 3}, "path"), ({}, "patch")):
+    halves = (({"path": "camera.fov_y"}, "value"), ({"value": 3}, "path"),
+              ({"patch": {}, "path": "camera.fov_y", "value": 3}, "path"), ({}, "patch"))
+    for params, path in halves:
         expect_error(s, c, "scene.set", dict(params, scene="s1"), E_PARAMS, path,
                      "scene.set %s" % short(params, 80))
     for params, path in bad:
