@@ -240,6 +240,17 @@ static void step_run(renderer_t *r, job_t *j) {
     goto out;
   }
   fluid_sim_get_particles(h->sim, fj->out->pos, fj->out->vel);
+  /* A diverged simulation is not published: the scene keeps the particles it had. */
+  for (size_t i = 0; i < 3 * (size_t)fj->out->count; i++)
+    if (!isfinite(fj->out->pos[i]) || !isfinite(fj->out->vel[i])) {
+      j->code = PROTO_E_DEVICE;
+      snprintf(j->err, sizeof j->err,
+               "the simulation diverged (particle %zu is not finite); the particles are left as "
+               "they were",
+               i / 3);
+      h->sim_gen = 0; /* Set up again from the scene's particles next time. */
+      goto out;
+    }
   h->sim_gen = fj->gen;
 out:
   particles_unref(chained);

@@ -354,6 +354,10 @@ static int inside(const double v[3], const double lo[3], const double hi[3]) {
   return 1;
 }
 
+/* The smallest particle_mass the solver takes (it runs in float32), beside 0 for the lattice
+ * mass. */
+#define FLUID_MIN_MASS 1e-12
+
 /*
  * The fluid's checks across fields: the tank is not empty, every emitter's centre and every
  * particle of the starting blocks lies inside it, and the blocks hold at most max_particles.
@@ -368,6 +372,13 @@ static int check_fluid(const cJSON *doc, scene_error_t *err) {
     if (!(lo[i] < hi[i]))
       return set_err(err, PROTO_E_INVALID_PARAMS, "fluid.bounds.max",
                      "fluid.bounds.max: must be above fluid.bounds.min on every axis");
+  /* The solver works in float32: a mass it would round to a denormal or to 0 makes NaNs. */
+  double mass = get(fluid, "particle_mass")->valuedouble;
+  if (mass > 0 && mass < FLUID_MIN_MASS)
+    return set_err(err, PROTO_E_INVALID_PARAMS, "fluid.particle_mass",
+                   "fluid.particle_mass: %g is too small for the float32 solver: 0 (the lattice "
+                   "mass) or from %g",
+                   mass, FLUID_MIN_MASS);
   char p[64];
   int k = 0;
   for (const cJSON *em = get(fluid, "emitters")->child; em; em = em->next, k++) {

@@ -104,15 +104,17 @@ static void cloud_unsection(snap_work_t *w, const cJSON *sec, const unsigned cha
     snprintf(w->bad, sizeof w->bad, "the cloud section's step is not a count");
     return;
   }
+  /* The byte count first, so that a short file cannot make us allocate a large grid. */
+  size_t cells = (size_t)n[0] * n[1] * n[2];
+  size_t want = 3 * 8 * (size_t)((n[0] + 63) / 64) * n[1] * n[2] + 4 * cells;
+  if (len != want) {
+    snprintf(w->bad, sizeof w->bad, "the cloud section has %zu bytes, not %zu", len, want);
+    return;
+  }
   w->cells = cloud_cells_new(n);
   w->density = density_grid_new(n);
   if (!w->cells || !w->density) {
     snprintf(w->bad, sizeof w->bad, "out of memory for the cloud");
-    return;
-  }
-  if (len != cloud_section_bytes(w->cells)) {
-    snprintf(w->bad, sizeof w->bad, "the cloud section has %zu bytes, not %zu", len,
-             cloud_section_bytes(w->cells));
     return;
   }
   w->cells->step = (uint64_t)step->valuedouble;

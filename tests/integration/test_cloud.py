@@ -636,6 +636,14 @@ def snapshot_carries_cells(s):
     c.ok("scene.load", {"scene": "snap", "file": "cloud.snap"})
     c.ok("sim.step", {"scene": "snap", "steps": 3}, timeout=60)
     s.check(get(c, "snap", "cld")[1] == after_load, "a loaded cloud steps reproducibly")
+    # A section whose dims promise a huge grid the bytes do not hold is refused (before the
+    # grid is allocated).
+    line = json.loads(data.split(b"\n", 1)[0])
+    line["sections"][0]["dims"] = [1024, 1024, 1024]
+    with open(os.path.join(s.srv.data_dir, "huge.snap"), "wb") as f:
+        f.write((json.dumps(line) + "\n").encode() + data.split(b"\n", 1)[1])
+    expect_error(s, c, "scene.load", {"scene": "snap", "file": "huge.snap"}, E_PARAMS, "file",
+                 "a cloud section of 1024³ dims and a 40 × 24 × 20 grid's bytes")
     # A truncated section is refused and nothing changes.
     with open(os.path.join(s.srv.data_dir, "short.snap"), "wb") as f:
         f.write(data[:-10])

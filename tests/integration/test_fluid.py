@@ -183,6 +183,11 @@ def bad_inputs(s):
     expect_error(s, c, "scene.set",
                  {"scene": "bad", "path": "fluid.bounds.max", "value": [5, -6, 5]}, E_PARAMS,
                  "fluid.bounds.max", "bounds max below min")
+    # Parameters the float32 solver would round to a denormal or to 0 (and then make NaNs of).
+    for path, value in (("fluid.particle_mass", 1e-40), ("fluid.rest_density", 1e-300),
+                        ("fluid.stiffness", 1e-46)):
+        expect_error(s, c, "scene.set", {"scene": "bad", "path": path, "value": value}, E_PARAMS,
+                     path, "%s of %g" % (path, value))
     # The tank may not shrink past the particles it holds (they could never be stepped).
     expect_error(s, c, "scene.set",
                  {"scene": "bad", "patch": {"fluid": {"bounds": {"min": [-1, -1, -1],
