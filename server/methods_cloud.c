@@ -84,6 +84,8 @@ static void cloud_run(renderer_t *r, job_t *j) {
   }
   if (blend)
     memcpy(d->data, shown->data, n * sizeof *d->data);
+  /* The step the density in d->data shows; the wind carries it along with the cells. */
+  uint64_t shown_step = src->step;
   unsigned taken = 0;
   for (unsigned f = 0; f < frames; f++) {
     int still = 0;
@@ -101,6 +103,9 @@ static void cloud_run(renderer_t *r, job_t *j) {
     if (cloud_density(cur, cj->cfg.radius, target) != 0)
       goto oom;
     if (blend) {
+      cloud_density_shift(d->data, src->n,
+                          cloud_wind_shift(&cj->cfg.params, shown_step, cur->step));
+      shown_step = cur->step;
       cloud_blend(next, d->data, n, still ? powf(cj->keep, (float)left) : cj->keep);
       next = d->data;
       d->data = target;

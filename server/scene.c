@@ -707,7 +707,11 @@ static int cloud_prepare(const scene_t *s, const cJSON *doc, cloud_cells_t *save
 
 /* Fills rs->cloud from the document, showing 'density' (a reference is taken); no cloud when
  * 'density' is NULL. */
-static void compile_cloud(const cJSON *doc, density_grid_t *density, render_scene_t *rs) {
+/* The cloud of 'doc' showing 'density', that of 'cells' (NULL: step 0), drawn where the wind
+ * has carried it: its box moved along +x by the fraction of a cell the wind has moved the
+ * cells beyond whole cells (cloud_wind_fraction). */
+static void compile_cloud(const cJSON *doc, const cloud_cells_t *cells, density_grid_t *density,
+                          render_scene_t *rs) {
   memset(&rs->cloud, 0, sizeof rs->cloud);
   if (!density)
     return;
@@ -716,6 +720,11 @@ static void compile_cloud(const cJSON *doc, density_grid_t *density, render_scen
   vec3d(get(cloud, "grid"), n);
   vec3d(get(cloud, "origin"), origin);
   double voxel = get(cloud, "voxel")->valuedouble;
+  cloud_params_t wind = {.rules = strcmp(get(cloud, "rules")->valuestring, "dobashi") == 0
+                                      ? CLOUD_DOBASHI
+                                      : CLOUD_KUROMIYA,
+                         .wind = get(cloud, "wind")->valuedouble};
+  origin[0] += cloud_wind_fraction(&wind, cells ? cells->step : 0) * voxel;
   rs->cloud.source = VOLUME_GRID;
   for (int i = 0; i < 3; i++) {
     rs->cloud.min[i] = (float)origin[i];
@@ -727,10 +736,10 @@ static void compile_cloud(const cJSON *doc, density_grid_t *density, render_scen
   rs->cloud.grid = density_grid_ref(density);
 }
 
-/* Builds the snapshot of a validated document showing the cloud density 'cloud', loading meshes
- * and volume files; NULL with 'err' set. */
-static render_scene_t *compile(const cJSON *doc, particles_t *particles, density_grid_t *cloud,
-                               scene_error_t *err) {
+/* Builds the snapshot of a validated document showing the cloud density 'cloud' (that of
+ * 'cells'), loading meshes and volume files; NULL with 'err' set. */
+static render_scene_t *compile(const cJSON *doc, particles_t *particles, const cloud_cells_t *cells,
+                               density_grid_t *cloud, scene_error_t *err) {
   render_scene_t *rs = calloc(1, sizeof *rs);
   if (!rs) {
     set_err(err, PROTO_E_INTERNAL, "", "out of memory");
@@ -802,7 +811,7 @@ static render_scene_t *compile(const cJSON *doc, particles_t *particles, density
     return NULL;
   }
   compile_fluid(doc, particles, rs);
-  compile_cloud(doc, cloud, rs);
+  compile_cloud(doc, cells, cloud, rs);
   if (compile_volumes(doc, rs, err) != 0) {
     render_scene_unref(rs);
     return NULL;
@@ -911,7 +920,7 @@ static int commit(scene_t *s, cJSON *doc, const scene_saved_t *saved, scene_erro
     goto fail; /* The tank may not shrink past the particles it holds. */
   }
   cJSON_SetNumberValue(get(get(doc, "fluid"), "count"), (particles ? (double)particles->count : 0));
-  rs = compile(doc, particles, density, err);
+  rs = compile(doc, particles, cells, density, err);
   if (!rs)
     goto fail;
   cJSON_Delete(s->doc);
@@ -1257,7 +1266,7 @@ int scene_set_cloud(scene_t *s, cloud_cells_t *cells, density_grid_t *density, i
   if (!rs)
     return -1;
   density_grid_unref(rs->cloud.grid);
-  compile_cloud(s->doc, density, rs);
+  compile_cloud(s->doc, cells, density, rs);
   cloud_cells_unref(s->cloud_cells);
   density_grid_unref(s->cloud_density);
   s->cloud_cells = cells;

@@ -365,8 +365,7 @@ CLONES static void dobashi(const cloud_cells_t *in, cloud_cells_t *out, const cl
   uint32_t ba = draw_base(p->seed, in->step, CLOUD_DRAW_ACT);
   int shaped = p->nellipsoids > 0;
   double srow[CLOUD_MAX_SIDE]; /* The shape along the row, when shaped. */
-  double s0 = floor((double)in->step * p->wind), s1 = floor((double)(in->step + 1) * p->wind);
-  long shift = (long)(s1 - s0);
+  long shift = cloud_wind_shift(p, in->step, in->step + 1);
   for (uint32_t z = z0; z < z1; z++)
     for (uint32_t y = 0; y < ny; y++) {
       size_t r = ((size_t)z * ny + y) * W;
@@ -682,4 +681,36 @@ int cloud_density(const cloud_cells_t *c, double r, float *out) {
 void cloud_blend(float *target, const float *shown, size_t n, float keep) {
   for (size_t i = 0; i < n; i++)
     target[i] += keep * (shown[i] - target[i]);
+}
+
+long cloud_wind_shift(const cloud_params_t *p, uint64_t from, uint64_t to) {
+  if (p->rules != CLOUD_DOBASHI)
+    return 0;
+  return (long)(floor((double)to * p->wind) - floor((double)from * p->wind));
+}
+
+double cloud_wind_fraction(const cloud_params_t *p, uint64_t step) {
+  if (p->rules != CLOUD_DOBASHI)
+    return 0;
+  double x = (double)step * p->wind;
+  return x - floor(x);
+}
+
+void cloud_density_shift(float *d, const uint32_t n[3], long s) {
+  if (s == 0)
+    return;
+  size_t nx = n[0], rows = (size_t)n[1] * n[2];
+  size_t k = (size_t)(s < 0 ? -s : s);
+  if (k > nx)
+    k = nx;
+  for (size_t r = 0; r < rows; r++) {
+    float *row = d + r * nx;
+    if (s > 0) {
+      memmove(row + k, row, (nx - k) * sizeof *row);
+      memset(row, 0, k * sizeof *row);
+    } else {
+      memmove(row, row + k, (nx - k) * sizeof *row);
+      memset(row + nx - k, 0, k * sizeof *row);
+    }
+  }
 }

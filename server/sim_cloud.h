@@ -114,6 +114,19 @@ void cloud_cells_seed(cloud_cells_t *c, const cloud_params_t *p, double hum, dou
  */
 void cloud_step(const cloud_cells_t *in, cloud_cells_t *out, const cloud_params_t *p);
 
+/* The cells the wind moves the cloud along +x from step 'from' to step 'to' (Dobashi:
+ * floor(to w) - floor(from w); Kuromiya: 0). */
+long cloud_wind_shift(const cloud_params_t *p, uint64_t from, uint64_t to);
+
+/* The fraction of a cell the wind has carried the cells of step 'step' beyond the whole cells
+ * it has moved them (s w - floor(s w), in [0, 1); 0 for Kuromiya): the renderer draws the cloud
+ * that far along +x, so that it drifts smoothly instead of jumping a cell every 1 / w steps. */
+double cloud_wind_fraction(const cloud_params_t *p, uint64_t step);
+
+/* Moves a density grid of dimensions 'n' (x fastest) by 's' cells along x: new[x] = old[x - s],
+ * zero where nothing moves in. */
+void cloud_density_shift(float *d, const uint32_t n[3], long s);
+
 /* The number of taps either side of the centre for metaball radius 'r' voxels: floor(r). */
 int cloud_kernel_half(double r);
 /*

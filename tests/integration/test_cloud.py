@@ -654,6 +654,48 @@ def snapshot_carries_cells(s):
 
 
 @T
+def wind_drifts_smoothly(s):
+    """A cloud blown at a quarter of a cell per step moves a quarter of a cell on screen each
+    step, not a whole cell every fourth: the cells move by whole cells, and the renderer draws
+    them the rest of the way (the centroid of its light over a black background, from rgbaf32
+    frames of the cloud alone)."""
+    c = s.srv.connect()
+    g = (24, 8, 8)
+    make(c, "wind", grid=g, rules="dobashi", wind=0.25, p_ext=0, p_hum=0, p_act=0,
+         metaball_radius=2, voxel=0.25, origin=[-3, -1, -1])
+    n = g[0] * g[1] * g[2]
+    cld = [1 if 6 <= i % g[0] < 10 and 2 <= (i // g[0]) % g[1] < 6 and 2 <= i // (g[0] * g[1]) < 6
+           else 0 for i in range(n)]
+    for field, vals in (("hum", [0] * n), ("act", [0] * n), ("cld", cld)):
+        c.ok("cloud.set_cells", {"scene": "wind", "field": field, "data": b64(vals)})
+    c.ok("scene.set", {"scene": "wind", "patch": {"camera": {
+        "eye": [0, 0, 9], "target": [0, 0, 0], "fov_y": 40}, "light": {"ambient": 1},
+        "background": [0, 0, 0]}})
+    w, h = 96, 48
+    cell_px = 0.25 * w / (2 * 9 * math.tan(math.radians(20)) * w / h)
+    # Smoothed, the density shown moves with the cells too: no ghost left a cell behind.
+    for smoothing in (0, 0.6):
+        c.ok("scene.set", {"scene": "wind", "path": "cloud.smoothing", "value": smoothing})
+        xs = []
+        for step in range(9):
+            if step:
+                c.ok("sim.step", {"scene": "wind"}, timeout=60)
+            _, raw = c.ok("render", {"scene": "wind", "width": w, "height": h,
+                                     "format": "rgbaf32", "layers": ["cloud"]}, timeout=60)
+            px = struct.unpack("<%df" % (4 * w * h), raw)
+            light = [px[4 * i] for i in range(w * h)]  # What it scatters over black.
+            total = sum(light)
+            xs.append(sum(a * (i % w) for i, a in enumerate(light)) / total if total else 0)
+        moves = [b - a for a, b in zip(xs, xs[1:])]
+        what = "smoothing %g: " % smoothing
+        s.check(all(m > 0 for m in moves), what + "the cloud moves every step", moves)
+        s.check(max(moves) < 1.5 * min(moves), what + "by about the same amount each step",
+                moves)
+        s.check(abs(sum(moves) / 8 - 0.25 * cell_px) < 0.1 * 0.25 * cell_px,
+                what + "a quarter of a cell a step", (sum(moves) / 8, 0.25 * cell_px))
+
+
+@T
 def play_steps_the_cloud(s):
     c = s.srv.connect()
     make(c, "play", grid=(32, 32, 32), rules="dobashi", wind=0.5)
