@@ -720,11 +720,9 @@ static void compile_cloud(const cJSON *doc, const cloud_cells_t *cells, density_
   vec3d(get(cloud, "grid"), n);
   vec3d(get(cloud, "origin"), origin);
   double voxel = get(cloud, "voxel")->valuedouble;
-  cloud_params_t wind = {.rules = strcmp(get(cloud, "rules")->valuestring, "dobashi") == 0
-                                      ? CLOUD_DOBASHI
-                                      : CLOUD_KUROMIYA,
-                         .wind = get(cloud, "wind")->valuedouble};
-  origin[0] += cloud_wind_fraction(&wind, cells ? cells->step : 0) * voxel;
+  scene_cloud_t c;
+  cloud_config_of(doc, &c);
+  origin[0] += cloud_wind_fraction(&c.params, cells ? cells->step : 0) * voxel;
   rs->cloud.source = VOLUME_GRID;
   for (int i = 0; i < 3; i++) {
     rs->cloud.min[i] = (float)origin[i];
