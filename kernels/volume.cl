@@ -372,11 +372,11 @@ __kernel void volume_depth_down(__global const float *restrict depth, int pitch,
 /*
  * volume_up: VOL_UP_PACKET full pixels of a row per work-item, at pixel (VOL_UP_PACKET global x,
  * global y). Each
- * takes the volumes' light and opacity from the four low pixels around it, bilinearly where all
- * four (those with a weight) saw about the same opaque depth as it does (within VOL_UP_DEPTH of
- * it, relative), and otherwise from the one whose depth is nearest its own, so that a volume in
- * front of an object's edge does not bleed across it; then composites them over what the
- * earlier passes drew: C = (1 - A) behind + L.
+ * takes the volumes' light and opacity from the four low pixels around it, bilinearly over
+ * those that saw about the same opaque depth as it does (within VOL_UP_DEPTH of it, relative;
+ * their weights renormalised), so that a volume in front of an object's edge does not bleed
+ * across it, and from the one whose depth is nearest its own where none does; then composites
+ * them over what the earlier passes drew: C = (1 - A) behind + L.
  */
 __kernel void volume_up(__global const float *restrict low, int low_pitch, int low_w, int low_h,
                         __global const float *restrict low_depth, int d, float far_,
@@ -428,11 +428,15 @@ __kernel void volume_up(__global const float *restrict low, int low_pitch, int l
   vf z = fmin(vload16(0, depth + o), far_), tol = VOL_UP_DEPTH * z;
   vf d00 = fabs(fmin(q00[0], far_) - z), d10 = fabs(fmin(q10[0], far_) - z);
   vf d01 = fabs(fmin(q01[0], far_) - z), d11 = fabs(fmin(q11[0], far_) - z);
-  /* A sample with no weight need not agree. */
-  vi agree =
-      ((d00 <= tol) | (fx == 1.0f) | (fy == 1.0f)) & ((d10 <= tol) | (fx == 0.0f) | (fy == 1.0f)) &
-      ((d01 <= tol) | (fx == 1.0f) | (fy == 0.0f)) & ((d11 <= tol) | (fx == 0.0f) | (fy == 0.0f));
-  /* The nearest in depth, ties to the first. */
+  /* Bilinear weights, kept only for the low pixels whose depth agrees with this pixel's. */
+  vf w00 = select(0.0f, (1.0f - fx) * (1.0f - fy), d00 <= tol);
+  vf w10 = select(0.0f, fx * (1.0f - fy), d10 <= tol);
+  vf w01 = select(0.0f, (1.0f - fx) * fy, d01 <= tol);
+  vf w11 = select(0.0f, fx * fy, d11 <= tol);
+  vf sum = w00 + w10 + w01 + w11;
+  vi some = sum > 0.0f;
+  vf inv_sum = 1.0f / select(1.0f, sum, some);
+  /* Where none agrees, the nearest in depth, ties to the first. */
   vi n10 = d10 < d00;
   vf best = fmin(d00, d10);
   vi n01 = d01 < best;
@@ -442,8 +446,8 @@ __kernel void volume_up(__global const float *restrict low, int low_pitch, int l
   for (int k = 0; k < 4; k++) {
     vf c00 = q00[k + 1], c10 = q10[k + 1], c01 = q01[k + 1], c11 = q11[k + 1];
     vf near = select(select(select(c00, c10, n10), c01, n01), c11, n11);
-    vf mixed = mix(mix(c00, c10, fx), mix(c01, c11, fx), fy);
-    c[k] = select(near, mixed, agree);
+    vf mixed = (w00 * c00 + w10 * c10 + w01 * c01 + w11 * c11) * inv_sum;
+    c[k] = select(near, mixed, some);
   }
   __global float *out = linear + 4 * o;
   float16 q[4] = {vload16(0, out), vload16(1, out), vload16(2, out), vload16(3, out)};
