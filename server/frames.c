@@ -154,6 +154,7 @@ static void on_frame_done(job_t *j) {
   cJSON_AddNumberToObject(p, "time", j->time);
   cJSON_AddNumberToObject(p, "work_ms", j->out.total_ms);
   cJSON_AddItemToObject(p, "passes", render_job_times(j));
+  cJSON_AddNumberToObject(p, "antialias", j->out.antialias);
   /* The frame waiting now, if any, is about to be replaced. */
   cJSON_AddNumberToObject(p, "dropped", (double)(sub->dropped + (sub->wait_line ? 1 : 0)));
   cJSON_AddNumberToObject(p, "width", j->params.width);

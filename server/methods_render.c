@@ -188,6 +188,7 @@ static void on_render_done(job_t *j) {
     cJSON_AddNumberToObject(r, "frame", (double)j->frame);
     cJSON_AddNumberToObject(r, "time", j->time);
     cJSON_AddItemToObject(r, "work_ms", render_job_times(j));
+    cJSON_AddNumberToObject(r, "antialias", j->out.antialias);
     if (rc->t) {
       cJSON_AddItemToObject(r, "t", rc->t);
       rc->t = NULL;
@@ -246,7 +247,7 @@ const method_t method_render = {
     .name = "render",
     .summary = "Renders one frame, returned as an attachment with per-pass timings.",
     .params = &(sch_field_t){.type = SCH_OBJECT, .fields = render_params},
-    .result = "{width, height, format, aov, frame, time, work_ms {pass: ms, queue, total}, t, "
-              "attachment {bytes, format, width, height}}",
+    .result = "{width, height, format, aov, frame, time, work_ms {pass: ms, queue, total}, "
+              "antialias, t, attachment {bytes, format, width, height}}",
     .errors = render_errors,
     .handler = render_m};

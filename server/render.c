@@ -68,13 +68,13 @@ static int pass_tonemap(renderer_t *r, const render_scene_t *scene, char *err, s
   return 0;
 }
 
-/* Copies the image part of the padded per-pixel buffer 'buf' ('pixel' bytes a pixel) to 'dst',
- * rows packed. */
-static int read_back(renderer_t *r, cl_mem buf, size_t pixel, const render_params_t *p, void *dst,
-                     char *err, size_t errlen) {
+/* Copies the image part of the padded per-pixel buffer 'buf' ('pixel' bytes a pixel, 'pitch'
+ * pixels a row) to 'dst', rows packed. */
+static int read_back(renderer_t *r, cl_mem buf, size_t pixel, size_t pitch,
+                     const render_params_t *p, void *dst, char *err, size_t errlen) {
   size_t origin[3] = {0, 0, 0}, region[3] = {p->width * pixel, p->height, 1};
   cl_int cr = clEnqueueReadBufferRect(r->dev.queue, buf, CL_TRUE, origin, origin, region,
-                                      r->pitch * pixel, 0, p->width * pixel, 0, dst, 0, NULL, NULL);
+                                      pitch * pixel, 0, p->width * pixel, 0, dst, 0, NULL, NULL);
   if (cr != CL_SUCCESS) {
     set_err(err, errlen, "[render] readback failed on %s: %s", r->dev.device_name,
             cl_dev_strerror(cr));
@@ -116,6 +116,16 @@ int renderer_render(renderer_t *r, const render_scene_t *scene, const render_par
   }
 
   size_t npix = (size_t)p->width * p->height;
+  /* render.antialias: a beauty frame is drawn at n times its width and height ('dp') and the
+   * resolve pass averages each pixel's n x n samples in place of the tone map. */
+  int n = beauty && scene->antialias > 1 ? scene->antialias : 1;
+  while (n > 1 && ((size_t)n * p->width > MAX_SIDE || (size_t)n * p->height > MAX_SIDE ||
+                   (size_t)n * n * npix > AA_MAX_SAMPLES))
+    n--;
+  render_params_t drawn = *p;
+  drawn.width = (uint32_t)n * p->width, drawn.height = (uint32_t)n * p->height;
+  const render_params_t *dp = &drawn;
+  out->antialias = n;
   int waves = (p->layers & LAYER_WAVES) && scene->nwaves > 0 && p->aov != AOV_DEPTH;
   if (p->aov == AOV_WAVE_H && !waves) {
     /* Without waves to draw, their summed H is zero everywhere. */
@@ -136,11 +146,11 @@ int renderer_render(renderer_t *r, const render_scene_t *scene, const render_par
   int fluid = (p->layers & LAYER_FLUID) && scene->fluid.count > 0;
   int volumes = (p->layers & (LAYER_VOLUMES | LAYER_CLOUD)) && p->aov == AOV_BEAUTY &&
                 (scene->nvolumes > 0 || scene->cloud.grid != NULL);
-  int fused = waves && beauty && p->format != PROTO_FMT_RGBAF32;
+  int fused = waves && beauty && p->format != PROTO_FMT_RGBAF32 && n == 1;
   r->objects_optional = fused && !fluid && !volumes;
 
   double t = now_ms();
-  int rc = render_pass_objects(r, scene, p, err, errlen);
+  int rc = render_pass_objects(r, scene, dp, err, errlen);
   if (rc != 0)
     return rc;
   add_pass(out, "objects", now_ms() - t);
@@ -185,7 +195,12 @@ int renderer_render(renderer_t *r, const render_scene_t *scene, const render_par
       return PROTO_E_INTERNAL;
     }
   }
-  if (beauty && p->format != PROTO_FMT_RGBAF32 && !fused) {
+  if (n > 1) {
+    t = now_ms();
+    if ((rc = render_pass_resolve(r, scene, p, n, err, errlen)) != 0)
+      goto fail;
+    add_pass(out, "resolve", now_ms() - t);
+  } else if (beauty && p->format != PROTO_FMT_RGBAF32 && !fused) {
     t = now_ms();
     if ((rc = pass_tonemap(r, scene, err, errlen)) != 0)
       goto fail;
@@ -203,15 +218,20 @@ int renderer_render(renderer_t *r, const render_scene_t *scene, const render_par
       }
       r->scratch = s, r->scratch_cap = 4 * npix;
     }
-    rc = read_back(r, r->rgba8, 4, p, r->scratch, err, errlen);
+    rc = n > 1 ? read_back(r, r->resolved, 4, render_resolved_pitch(p->width), p, r->scratch, err,
+                           errlen)
+               : read_back(r, r->rgba8, 4, r->pitch, p, r->scratch, err, errlen);
   } else if (p->aov == AOV_DEPTH) {
-    rc = read_back(r, r->depth, sizeof(float), p, bytes, err, errlen);
+    rc = read_back(r, r->depth, sizeof(float), r->pitch, p, bytes, err, errlen);
   } else if (p->aov == AOV_WAVE_H) {
-    rc = read_back(r, r->hbuf, sizeof(float), p, bytes, err, errlen);
+    rc = read_back(r, r->hbuf, sizeof(float), r->pitch, p, bytes, err, errlen);
+  } else if (n > 1) {
+    rc = read_back(r, r->resolved, p->format == PROTO_FMT_RGBAF32 ? 4 * sizeof(float) : 4,
+                   render_resolved_pitch(p->width), p, bytes, err, errlen);
   } else if (p->format == PROTO_FMT_RGBAF32) {
-    rc = read_back(r, r->linear, 4 * sizeof(float), p, bytes, err, errlen);
+    rc = read_back(r, r->linear, 4 * sizeof(float), r->pitch, p, bytes, err, errlen);
   } else {
-    rc = read_back(r, r->rgba8, 4, p, bytes, err, errlen);
+    rc = read_back(r, r->rgba8, 4, r->pitch, p, bytes, err, errlen);
   }
   if (rc != 0)
     goto fail;
@@ -329,6 +349,17 @@ static int warm_up(renderer_t *r, char *err, size_t errlen) {
     rc = renderer_render(r, &scene, &p, &out, err, errlen);
     free(out.bytes);
   }
+  if (rc == 0) { /* The tone-map pass, which the waves pass replaces in the frames above. */
+    p.layers = LAYER_ALL & ~LAYER_WAVES;
+    rc = renderer_render(r, &scene, &p, &out, err, errlen);
+    free(out.bytes);
+  }
+  scene.antialias = 2; /* The resolve kernels, 8-bit and linear. */
+  for (int f = 0; rc == 0 && f < 2; f++) {
+    p.format = f ? PROTO_FMT_RGBAF32 : PROTO_FMT_RGBA8;
+    rc = renderer_render(r, &scene, &p, &out, err, errlen);
+    free(out.bytes);
+  }
   /* Drop the BVH of the stack mesh and the volume caches' grid references before they go out
    * of scope. */
   render_bvh_forget(r);
@@ -356,7 +387,7 @@ int renderer_create(const renderer_opts_t *opts, renderer_t **out, char *err, si
       (r->waves = cl_dev_kernel(&r->dev, "waves", err, errlen)) == NULL ||
       (r->waves_march = cl_dev_kernel(&r->dev, "waves_march", err, errlen)) == NULL ||
       (r->fluid = cl_dev_kernel(&r->dev, "fluid", err, errlen)) == NULL ||
-      render_volume_init(r, err, errlen) != 0)
+      render_resolve_init(r, err, errlen) != 0 || render_volume_init(r, err, errlen) != 0)
     goto fail;
   r->objects_local[0] = OBJECTS_LX;
   r->objects_local[1] = OBJECTS_LY;
@@ -403,6 +434,7 @@ void renderer_destroy(renderer_t *r) {
     cl_dev_save_binary(&r->dev);
   render_bvh_forget(r);
   render_volume_free(r);
+  render_resolve_free(r);
   cl_mem bufs[] = {r->linear,    r->depth,      r->rgba8, r->objs,        r->nodes,    r->tris,
                    r->wave_recs, r->wave_lists, r->hbuf,  r->fluid_cells, r->fluid_pos};
   for (size_t i = 0; i < sizeof bufs / sizeof bufs[0]; i++) {

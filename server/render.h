@@ -54,6 +54,7 @@ typedef struct render_output {
     double ms;
   } passes[RENDER_MAX_PASSES];
   double total_ms;
+  int antialias; /* Samples per pixel along each axis the frame was drawn with. */
 } render_output_t;
 
 /*

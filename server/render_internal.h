@@ -30,8 +30,11 @@
 #define TONEMAP_LY 8
 
 #define MAX_SIDE 16384 /* Largest width or height the renderer accepts, whatever the limits. */
-#define BVH_LEAF 4     /* Triangles per leaf the builder aims for. */
-#define BVH_BINS 16    /* Bins of the SAH split search. */
+/* Most samples an anti-aliased frame is drawn with (render.antialias n is lowered until n^2
+ * width height fits): the pixels of the largest frame the default limits allow. */
+#define AA_MAX_SAMPLES ((size_t)4096 * 4096)
+#define BVH_LEAF 4                /* Triangles per leaf the builder aims for. */
+#define BVH_BINS 16               /* Bins of the SAH split search. */
 #define FLUID_MAX_CELLS (1 << 21) /* The fluid grid's cells grow beyond h to stay under this. */
 
 /* A mesh object as the cached BVH saw it. */
@@ -84,6 +87,10 @@ struct renderer {
   size_t host_fpos_cap;
   unsigned char *scratch; /* Tone-mapped bytes waiting for the PNG encoder. */
   size_t scratch_cap;
+
+  cl_kernel resolve8, resolvef; /* render_resolve.c: 8-bit and linear output. */
+  cl_mem resolved;              /* The anti-aliased frame, cap_resolved bytes. */
+  size_t cap_resolved;
 };
 
 static inline void set_err(char *err, size_t errlen, const char *fmt, ...) {
@@ -151,6 +158,18 @@ int render_pass_waves(renderer_t *r, const render_scene_t *scene, int mode, int 
 /* render_fluid.c: the particles as metaballs, depth-tested against r->depth. */
 int render_pass_fluid(renderer_t *r, const render_scene_t *scene, int *ran, char *err,
                       size_t errlen);
+
+/* render_resolve.c: the kernels of the resolve pass (render_resolve_free undoes it, also after
+ * a failure). Returns 0, or -1 with 'err' set. */
+int render_resolve_init(renderer_t *r, char *err, size_t errlen);
+void render_resolve_free(renderer_t *r);
+
+/* render_resolve.c: averages the n x n samples of each pixel of the frame 'p' asks for, drawn
+ * at n times its size into r->linear, into r->resolved: 8-bit RGBA after the tone map, or
+ * linear RGBA floats for rgbaf32. Its rows are render_resolved_pitch(p->width) pixels. */
+int render_pass_resolve(renderer_t *r, const render_scene_t *scene, const render_params_t *p, int n,
+                        char *err, size_t errlen);
+size_t render_resolved_pitch(uint32_t width);
 
 /* render_volume.c: creates the volume kernels and state (render_volume_free undoes it, also
  * after a failure). Returns 0, or -1 with 'err' set. */

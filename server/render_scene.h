@@ -159,6 +159,8 @@ typedef struct render_scene {
   int transparent_background; /* Background pixels get alpha 0 instead of 1. */
   int volume_div;             /* The volumes pass runs at 1 / volume_div of the frame's width
                                  and height (render.volume_resolution): 1 (or 0), 2 or 4. */
+  int antialias;              /* Samples per pixel along each axis of a beauty frame
+                                 (render.antialias): 1 (or 0) to 4. */
   uint64_t frame;             /* Simulation frame and time at the snapshot. */
   double time;
 } render_scene_t;

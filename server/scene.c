@@ -770,6 +770,7 @@ static render_scene_t *compile(const cJSON *doc, particles_t *particles, const c
   const char *vres = get(render, "volume_resolution")->valuestring;
   rs->volume_div = strcmp(vres, "half") == 0 ? 2 : strcmp(vres, "quarter") == 0 ? 4 : 1;
   rs->transparent_background = cJSON_IsTrue(get(render, "transparent_background"));
+  rs->antialias = (int)get(render, "antialias")->valuedouble;
 
   const cJSON *sim = get(doc, "sim");
   rs->frame = (uint64_t)get(sim, "frame")->valuedouble;

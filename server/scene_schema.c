@@ -400,6 +400,15 @@ static const sch_field_t render_fields[] = {
              "rays, softer shafts.",
      .def_str = "full",
      .enum_values = volume_resolutions},
+    {.name = "antialias",
+     .type = SCH_INTEGER,
+     .desc = "Samples per pixel along each axis: a beauty frame is rendered at antialias times "
+             "its width and height and each pixel is the mean of its antialias x antialias "
+             "samples (after the tone map for png and rgba8). Lowered for a frame whose samples "
+             "would pass 4096 x 4096; depth and wave_h take one sample per pixel.",
+     .min = 1,
+     .max = 4,
+     .def = 1},
     {0},
 };
 

@@ -560,6 +560,56 @@ def render_beauty(s):
 
 
 @T
+def render_antialias(s):
+    """render.antialias: set over the socket, reported by every frame, changing only the pixels
+    along edges; bad values refused with data.path and nothing changed."""
+    c = s.srv.connect()
+    c.ok("scene.create", {"name": "aa", "preset": "demo"})
+    w, h = 96, 64
+    r1, a1 = c.ok("render", {"scene": "aa", "width": w, "height": h, "format": "rgba8"})
+    s.eq(r1.get("antialias"), 1, "a frame reports antialias 1 by default")
+    s.eq(c.ok("scene.get", {"scene": "aa", "path": "render.antialias"})[0], 1,
+         "render.antialias defaults to 1")
+    c.ok("scene.set", {"scene": "aa", "path": "render.antialias", "value": 3})
+    r3, a3 = c.ok("render", {"scene": "aa", "width": w, "height": h, "format": "rgba8"})
+    s.eq(r3.get("antialias"), 3, "the frame reports antialias 3")
+    s.check("resolve" in (r3.get("work_ms") or {}), "work_ms has the resolve pass", short(r3))
+    if a1 and a3 and len(a1) == len(a3) == 4 * w * h:
+        # Pixels whose 3x3 neighbourhood is flat in the plain frame keep about their value.
+        changed = flat_changed = flat = 0
+        for y in range(1, h - 1):
+            for x in range(1, w - 1):
+                i = 4 * (y * w + x)
+                d = max(abs(a1[i + k] - a3[i + k]) for k in range(3))
+                changed += d > 2
+                spread = 0
+                for k in range(3):
+                    around = [a1[4 * ((y + dy) * w + x + dx) + k] for dy in (-1, 0, 1)
+                              for dx in (-1, 0, 1)]
+                    spread = max(spread, max(around) - min(around))
+                if spread <= 3:
+                    flat += 1
+                    flat_changed += d > 4
+        s.check(changed > 20, "antialias changes the edge pixels", "%d changed" % changed)
+        s.check(flat > 100 and flat_changed <= flat // 50,
+                "antialias keeps flat areas", "%d of %d flat pixels changed" % (flat_changed, flat))
+    rd, ad = c.ok("render", {"scene": "aa", "width": w, "height": h, "aov": "depth",
+                             "format": "f32"})
+    s.eq(rd.get("antialias"), 1, "depth is drawn with one sample per pixel")
+    for bad in (0, 5, 2.5, "2", True, [2]):
+        expect_error(s, c, "scene.set", {"scene": "aa", "path": "render.antialias", "value": bad},
+                     E_PARAMS, "render.antialias", "render.antialias %r" % (bad,))
+    expect_error(s, c, "scene.set", {"scene": "aa", "patch": {"render": {"antialias": 9},
+                                                              "camera": {"fov_y": 20}}},
+                 E_PARAMS, "render.antialias", "a patch with antialias 9")
+    s.eq(c.ok("scene.get", {"scene": "aa", "path": "render.antialias"})[0], 3,
+         "bad antialias values change nothing")
+    s.check(c.ok("scene.get", {"scene": "aa", "path": "camera.fov_y"})[0] != 20,
+            "nor the rest of a patch that carries one")
+    c.ok("scene.delete", {"name": "aa"})
+
+
+@T
 def render_depth(s):
     c = s.srv.connect()
     _depth_scene(c, "dp")

@@ -1,9 +1,9 @@
 /*
  * Renderer tests against an independent reference: a brute-force ray caster in double
  * precision written here from SPEC §4 and render_scene.h (camera, object transforms, shapes,
- * near/far, Lambert shading, shadows, tone maps), plus formats, PNG round trips, parameter
- * errors, device choice, kernel loading and OBJ parsing. Scenes are built directly as
- * render_scene_t structs. Exits non-zero on any failure.
+ * near/far, Lambert shading, shadows, tone maps, anti-aliasing by sub-pixel coverage), plus
+ * formats, PNG round trips, parameter errors, device choice, kernel loading and OBJ parsing. Scenes
+ * are built directly as render_scene_t structs. Exits non-zero on any failure.
  */
 #include <math.h>
 #include <png.h>
@@ -881,6 +881,137 @@ static void test_tonemap_and_formats(void) {
   compare_depth(&s, "after resizing");
 }
 
+/* The colour operator of ref_byte alone, and the sRGB byte of a value it made. */
+static double ref_tone(double x, tone_map_t op) {
+  x = fmax(x, 0);
+  if (op == TONE_REINHARD)
+    x = x / (1 + x);
+  else if (op == TONE_ACES)
+    x = x * (2.51 * x + 0.03) / (x * (2.43 * x + 0.59) + 0.14);
+  return fmin(x, 1);
+}
+
+static int ref_srgb_byte(double x) {
+  x = x <= 0.0031308 ? 12.92 * x : 1.055 * pow(x, 1 / 2.4) - 0.055;
+  return (int)floor(x * 255 + 0.5);
+}
+
+/* Renders with render.antialias 'n'; returns the bytes and sets '*used' to the factor drawn. */
+static void *render_aa(render_scene_t *s, int n, int w, int h, proto_format_t fmt, aov_t aov,
+                       int *used) {
+  s->antialias = n;
+  render_params_t p = {.width = (uint32_t)w,
+                       .height = (uint32_t)h,
+                       .format = fmt,
+                       .aov = aov,
+                       .layers = LAYER_ALL,
+                       .png_level = -1};
+  render_output_t out;
+  char err[1024];
+  int rc = renderer_render(R, s, &p, &out, err, sizeof err);
+  s->antialias = 0;
+  CHECK(rc == 0, "antialias %d: render failed: %d %s", n, rc, err);
+  *used = rc == 0 ? out.antialias : 0;
+  return rc == 0 ? out.bytes : NULL;
+}
+
+/*
+ * render.antialias: black objects before a white background, unlit, show in each pixel the
+ * fraction of its n x n sub-pixel rays (the reference caster's, at the centres of an n W x n H
+ * frame's pixels) that miss them; a lit, tone-mapped scene gives the mean of the n W x n H
+ * frame's linear pixels (rgbaf32), and the sRGB byte of the mean of their tone-mapped values
+ * (rgba8); depth takes one sample; a factor that would pass the renderer's side is lowered.
+ */
+static void test_antialias(void) {
+  render_scene_t s = base_scene();
+  s.background[0] = s.background[1] = s.background[2] = 1;
+  s.light.intensity = 0, s.light.ambient = 0;
+  robject_t ob[2] = {
+      {.shape = SHAPE_SPHERE, .position = {0.6f, 0.5f, 0}, .scale = {1.2f, 1.2f, 1.2f}},
+      {.shape = SHAPE_BOX,
+       .position = {-0.9f, 0.3f, 0.2f},
+       .scale = {0.9f, 0.7f, 0.8f},
+       .rotation = {10, 35, 0}},
+  };
+  s.objects = ob, s.nobjects = 2;
+  for (int n = 2; n <= 3; n++) {
+    int used;
+    float *img = render_aa(&s, n, W, H, PROTO_FMT_RGBAF32, AOV_BEAUTY, &used);
+    CHECK(used == n, "antialias %d drew %d", n, used);
+    int partial = 0, one_off = 0, bad = 0;
+    for (int y = 0; img && y < H; y++)
+      for (int x = 0; x < W; x++) {
+        int miss = 0, id;
+        for (int sy = 0; sy < n; sy++)
+          for (int sx = 0; sx < n; sx++) {
+            ray_t ray = camera_ray(&s.camera, n * W, n * H, n * x + sx, n * y + sy);
+            ref_trace(&s, &ray, s.camera.near_, s.camera.far_, &id);
+            miss += id < 0;
+          }
+        double want = (double)miss / (n * n), got = img[4 * (y * W + x)];
+        partial += miss > 0 && miss < n * n;
+        double d = fabs(got - want);
+        /* A sub-pixel ray that grazes an edge may go either way in float: one sample's worth. */
+        one_off += d > 1e-5 && fabs(d - 1.0 / (n * n)) < 1e-5;
+        if (d > 1e-5 && fabs(d - 1.0 / (n * n)) >= 1e-5 && bad++ < 5)
+          fprintf(stderr, "  antialias %d: pixel (%d, %d) %.5f, coverage %.5f\n", n, x, y, got,
+                  want);
+      }
+    CHECK(bad == 0, "antialias %d: %d pixels off the sub-pixel coverage", n, bad);
+    CHECK(one_off <= W * H / 200, "antialias %d: %d pixels one sample off", n, one_off);
+    CHECK(partial > 50, "antialias %d: only %d pixels partly covered", n, partial);
+    printf("antialias %d: %d partly covered pixels match their coverage, %d by one sample less\n",
+           n, partial - one_off, one_off);
+    free(img);
+  }
+
+  /* Lit and tone-mapped: against the larger frame's pixels, averaged here. */
+  s.light.intensity = 2.5f, s.light.ambient = 0.2f;
+  s.light.direction[0] = 0.5f, s.light.direction[1] = 0.7f, s.light.direction[2] = 0.5f;
+  ob[0].color[0] = 0.9f, ob[0].color[1] = 0.4f, ob[0].color[2] = 0.2f;
+  ob[1].color[0] = 0.2f, ob[1].color[1] = 0.6f, ob[1].color[2] = 0.9f;
+  s.tone_map = TONE_ACES, s.exposure = 0.4f;
+  const int n = 2;
+  int used;
+  float *big = render_aa(&s, 1, n * W, n * H, PROTO_FMT_RGBAF32, AOV_BEAUTY, &used);
+  float *lin = render_aa(&s, n, W, H, PROTO_FMT_RGBAF32, AOV_BEAUTY, &used);
+  unsigned char *rgba = render_aa(&s, n, W, H, PROTO_FMT_RGBA8, AOV_BEAUTY, &used);
+  double worst_lin = 0, scale = pow(2, s.exposure);
+  int worst_byte = 0, off = 0;
+  for (int y = 0; big && lin && rgba && y < H; y++)
+    for (int x = 0; x < W; x++)
+      for (int c = 0; c < 4; c++) {
+        double mean = 0, tone = 0;
+        for (int sy = 0; sy < n; sy++)
+          for (int sx = 0; sx < n; sx++) {
+            double v = big[4 * ((size_t)(n * y + sy) * n * W + n * x + sx) + c];
+            mean += v / (n * n), tone += ref_tone(v * scale, s.tone_map) / (n * n);
+          }
+        int i = 4 * (y * W + x) + c;
+        worst_lin = fmax(worst_lin, fabs(lin[i] - mean) / fmax(1, mean));
+        int want = c == 3 ? (int)floor(fmin(fmax(mean, 0), 1) * 255 + 0.5) : ref_srgb_byte(tone);
+        int d = abs(want - rgba[i]);
+        off += d != 0;
+        worst_byte = d > worst_byte ? d : worst_byte;
+      }
+  CHECK(worst_lin < 1e-5, "antialias rgbaf32: %.2g from the mean of the larger frame", worst_lin);
+  CHECK(worst_byte <= 1 && off < W * H * 4 / 100, "antialias rgba8: %d bytes off, worst by %d", off,
+        worst_byte);
+  free(big), free(lin), free(rgba);
+
+  /* Depth takes one sample per pixel whatever the factor. */
+  float *d1 = render_aa(&s, 1, W, H, PROTO_FMT_F32, AOV_DEPTH, &used);
+  float *d3 = render_aa(&s, 3, W, H, PROTO_FMT_F32, AOV_DEPTH, &used);
+  CHECK(used == 1, "depth drawn with antialias %d", used);
+  CHECK(d1 && d3 && memcmp(d1, d3, sizeof(float) * W * H) == 0, "depth changes with antialias");
+  free(d1), free(d3);
+
+  /* A row of 5462 pixels: 4 or 3 times that would pass the renderer's largest side (16384). */
+  unsigned char *row = render_aa(&s, 4, 5462, 1, PROTO_FMT_RGBA8, AOV_BEAUTY, &used);
+  CHECK(used == 2, "a 5462-pixel row was drawn with antialias %d, not 2", used);
+  free(row);
+}
+
 static void test_bad_params(void) {
   render_scene_t s = base_scene();
   struct {
@@ -980,6 +1111,7 @@ int main(void) {
   test_clipping();
   test_layers_and_background();
   test_tonemap_and_formats();
+  test_antialias();
   test_bad_params();
   test_devices_and_kernels();
 
