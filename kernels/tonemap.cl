@@ -71,6 +71,13 @@ __kernel void resolve_tonemap(__global const float *restrict linear, int pitch, 
                convert_int16(tone_srgb(sb * inv) * 255.0f + 0.5f), tone_alpha(sa * inv));
 }
 
+/* Writes four pixels, one float4 per channel, to 'o' in RGBA order. */
+static void resolve_store4(float4 r, float4 g, float4 b, float4 a, __global float *restrict o) {
+  vstore16((float16)(r.s0, g.s0, b.s0, a.s0, r.s1, g.s1, b.s1, a.s1, r.s2, g.s2, b.s2, a.s2, r.s3,
+                     g.s3, b.s3, a.s3),
+           0, o);
+}
+
 __kernel void resolve_linear(__global const float *restrict linear, int pitch, int hi_w, int n,
                              __global float *restrict out, int out_pitch, int out_h) {
   int x0 = 16 * get_global_id(0), y = get_global_id(1);
@@ -87,18 +94,9 @@ __kernel void resolve_linear(__global const float *restrict linear, int pitch, i
     }
   float inv = 1.0f / (float)(n * n);
   float16 r = s[0] * inv, g = s[1] * inv, b = s[2] * inv, a = s[3] * inv;
-  /* Back to RGBA order: four pixels per float16. */
   __global float *o = out + 4 * ((size_t)y * out_pitch + x0);
-  vstore16((float16)(r.s0, g.s0, b.s0, a.s0, r.s1, g.s1, b.s1, a.s1, r.s2, g.s2, b.s2, a.s2, r.s3,
-                     g.s3, b.s3, a.s3),
-           0, o);
-  vstore16((float16)(r.s4, g.s4, b.s4, a.s4, r.s5, g.s5, b.s5, a.s5, r.s6, g.s6, b.s6, a.s6, r.s7,
-                     g.s7, b.s7, a.s7),
-           1, o);
-  vstore16((float16)(r.s8, g.s8, b.s8, a.s8, r.s9, g.s9, b.s9, a.s9, r.sa, g.sa, b.sa, a.sa, r.sb,
-                     g.sb, b.sb, a.sb),
-           2, o);
-  vstore16((float16)(r.sc, g.sc, b.sc, a.sc, r.sd, g.sd, b.sd, a.sd, r.se, g.se, b.se, a.se, r.sf,
-                     g.sf, b.sf, a.sf),
-           3, o);
+  resolve_store4(r.lo.lo, g.lo.lo, b.lo.lo, a.lo.lo, o);
+  resolve_store4(r.lo.hi, g.lo.hi, b.lo.hi, a.lo.hi, o + 16);
+  resolve_store4(r.hi.lo, g.hi.lo, b.hi.lo, a.hi.lo, o + 32);
+  resolve_store4(r.hi.hi, g.hi.hi, b.hi.hi, a.hi.hi, o + 48);
 }

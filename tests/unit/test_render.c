@@ -248,6 +248,9 @@ static render_scene_t base_scene(void) {
   return s;
 }
 
+/* The render.antialias factor the last render() drew with. */
+static int rendered_antialias;
+
 /* Renders and returns the bytes (caller frees), or NULL after reporting the error. */
 static unsigned char *render(const render_scene_t *s, int w, int h, proto_format_t fmt, aov_t aov,
                              unsigned layers, size_t *n) {
@@ -265,6 +268,7 @@ static unsigned char *render(const render_scene_t *s, int w, int h, proto_format
     return NULL;
   if (n)
     *n = out.nbytes;
+  rendered_antialias = out.antialias;
   return out.bytes;
 }
 
@@ -900,19 +904,11 @@ static int ref_srgb_byte(double x) {
 static void *render_aa(render_scene_t *s, int n, int w, int h, proto_format_t fmt, aov_t aov,
                        int *used) {
   s->antialias = n;
-  render_params_t p = {.width = (uint32_t)w,
-                       .height = (uint32_t)h,
-                       .format = fmt,
-                       .aov = aov,
-                       .layers = LAYER_ALL,
-                       .png_level = -1};
-  render_output_t out;
-  char err[1024];
-  int rc = renderer_render(R, s, &p, &out, err, sizeof err);
+  rendered_antialias = 0;
+  void *bytes = render(s, w, h, fmt, aov, LAYER_ALL, NULL);
   s->antialias = 0;
-  CHECK(rc == 0, "antialias %d: render failed: %d %s", n, rc, err);
-  *used = rc == 0 ? out.antialias : 0;
-  return rc == 0 ? out.bytes : NULL;
+  *used = bytes ? rendered_antialias : 0;
+  return bytes;
 }
 
 /*
