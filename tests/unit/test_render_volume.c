@@ -597,13 +597,20 @@ static void test_grid_reference(void) {
       }
     }
   /* The light grid holds the transmittance towards the light at voxel centres only, swept slice
-   * by slice, and this grid has 7x6x5 voxels: the direct term is checked to 7.5% of the
-   * brightest scattering (the ambient-only case below is checked tightly). */
-  for (int i = 0; img && i < 3 * w * h; i++)
-    CHECK(err_img[i] < 0.075 * peak, "pixel %d channel %d off by %.4f (brightest %.4f)", i / 3,
+   * by slice, and this grid has 7x6x5 voxels: the direct term is checked to 11% of the
+   * brightest scattering, and on average to 0.4% (the ambient-only case below is checked
+   * tightly; test_light_grid_oblique checks a finer grid). */
+  double mean = 0;
+  for (int i = 0; img && i < 3 * w * h; i++) {
+    CHECK(err_img[i] < 0.11 * peak, "pixel %d channel %d off by %.4f (brightest %.4f)", i / 3,
           i % 3, err_img[i], peak);
+    mean += err_img[i] / (3 * w * h);
+  }
   free(err_img);
-  printf("grid vs reference: worst error %.4f (brightest scattering %.3f)\n", worst, peak);
+  CHECK(mean < 0.004 * peak, "the direct term is off by %.4f on average (brightest %.4f)", mean,
+        peak);
+  printf("grid vs reference: worst error %.4f, mean %.4f (brightest scattering %.3f)\n", worst,
+         mean, peak);
   CHECK(peak > 0.2, "the volume hardly shows (%.3f)", peak);
   free(img);
 
@@ -758,6 +765,77 @@ static void test_light_sweep_threads(void) {
   free_grid(g);
 }
 
+/*
+ * A uniform 32³ grid lit from oblique directions, ambient 0, isotropic phase: against single
+ * scattering with the exact transmittance towards the light, exp(-sigma d) for the distance d
+ * to where the light's ray leaves the box, through whichever face, within 3.5% (protocol.md).
+ * (The sweep once let a ray that leaves through a side face run on along the outer column of
+ * voxels to the far face: up to 79% too dark there; carrying the transmittance from slice to
+ * slice, interpolated in each, left up to 18% where the exit changes face.)
+ */
+static void test_light_grid_oblique(void) {
+  const uint32_t n = 32;
+  density_grid_t *g = make_grid(n, n, n);
+  for (size_t i = 0; i < (size_t)n * n * n; i++)
+    g->data[i] = 1;
+  rvolume_t v = {.source = VOLUME_GRID,
+                 .min = {-1, 0, -1},
+                 .max = {1, 2, 1},
+                 .density = 0.8f,
+                 .albedo = {1, 1, 1},
+                 .samples = 128,
+                 .grid = g};
+  rcamera_t cam = {.eye = {0.3f, 1.2f, 6},
+                   .target = {0, 1, 0},
+                   .up = {0, 1, 0},
+                   .fov_y = 40,
+                   .near_ = 0.05f,
+                   .far_ = 100};
+  render_scene_t s = bare_scene(cam);
+  s.light.intensity = 1;
+  s.volumes = &v, s.nvolumes = 1;
+  const double dirs[][3] = {{0.3, 1, 0}, {0, 1, 0.4}, {0.3, 1, -0.4}, {-0.9, 0.5, 0.3}};
+  double lo[3], hi[3];
+  for (int k = 0; k < 3; k++)
+    lo[k] = v.min[k], hi[k] = v.max[k];
+  const int w = 24, h = 24;
+  for (int d = 0; d < 4; d++) {
+    double l[3], ln = sqrt(dot3(dirs[d], dirs[d]));
+    for (int k = 0; k < 3; k++)
+      l[k] = dirs[d][k] / ln, s.light.direction[k] = (float)l[k];
+    float *img = render_f32(&s, w, h, LAYER_ALL);
+    CHECK(img != NULL, "render failed");
+    double worst = 0, peak = 0;
+    for (int y = 0; img && y < h; y++)
+      for (int x = 0; x < w; x++) {
+        ray_t ray = pixel_ray(&s.camera, w, h, x, y);
+        double t0, t1, want = 0, tr = 1;
+        if (slab(&ray, lo, hi, &t0, &t1)) {
+          int m = 2000;
+          double dt = (t1 - t0) / m, a = 1 - exp(-v.density * dt);
+          for (int i = 0; i < m; i++) {
+            double t = t0 + (i + 0.5) * dt, e0, e1;
+            ray_t up = {{ray.o[0] + t * ray.d[0], ray.o[1] + t * ray.d[1], ray.o[2] + t * ray.d[2]},
+                        {l[0], l[1], l[2]}};
+            double exit = slab(&up, lo, hi, &e0, &e1) ? e1 : 0;
+            want += tr * a * exp(-v.density * exit);
+            tr *= 1 - a;
+          }
+        }
+        double got = img[4 * (y * w + x)], rel = fabs(got - want) / fmax(want, 1e-3);
+        peak = fmax(peak, want);
+        worst = fmax(worst, rel);
+        CHECK(rel < 0.035, "light [%.1f, %.1f, %.1f]: pixel (%d, %d) %.5f, exact %.5f", dirs[d][0],
+              dirs[d][1], dirs[d][2], x, y, got, want);
+      }
+    CHECK(peak > 0.2, "the volume hardly shows (%.3f)", peak);
+    printf("uniform 32³ lit from [%.1f, %.1f, %.1f]: worst %.2f%% from the exact light\n",
+           dirs[d][0], dirs[d][1], dirs[d][2], 100 * worst);
+    free(img);
+  }
+  free_grid(g);
+}
+
 int main(void) {
   char err[8192];
   if (renderer_create(NULL, &R, err, sizeof err) != 0) {
@@ -770,6 +848,7 @@ int main(void) {
   test_low_resolution();
   test_grid_reference();
   test_light_sweep_threads();
+  test_light_grid_oblique();
   test_noise();
   renderer_destroy(R);
   printf("%d checks, %d failed\n", checks, failures);
