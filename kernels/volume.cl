@@ -24,7 +24,11 @@
  * edge falls between them, which draws bands that follow the sample spacing. Tests inside the
  * segment are cheap (one load each) and shrink that error to 1 / (2 VOL_SHADOW_TAPS) of a
  * segment where it matters, below what the eye sees, while the lateral offsets blend a shaft's
- * edge across the pixel.
+ * edge across the pixel. Each tap is also moved by its own fraction of a texel across the map
+ * (an 8 x 8 grid, every row and column once), so that their mean filters the staircase a
+ * slanted occluder's edge makes of the map's texels over about one texel, as a
+ * percentage-closer filter would, without its four loads a test: rays crossing many shaft
+ * edges otherwise sum those steps into streaks.
  *
  * A work-item shades a 4 x 4 block of pixels (VOL_PACKET_W x VOL_PACKET_H) in the lanes of a
  * float16, so that PoCL's code is vector code filling AVX-512's registers. Sixteen lanes rather
@@ -161,16 +165,21 @@ static inline vf vol_lit(__global const float *restrict smap, int pitch, const v
 
 /*
  * The shadow test of the points at fraction (k + 0.5) / VOL_SHADOW_TAPS of the segments
- * [t - dt / 2, t + dt / 2], half a pixel to one side of the ray or the other by (k / 2) % 2:
- * 1 lit, 0 shadowed. On the ray the map position is linear in t: (s0 + t ds, r0 + t dr, z0 +
- * t dz), s0, r0 and z0 those of the eye; (os, or) is the half-pixel offset per unit of t.
+ * [t - dt / 2, t + dt / 2], half a pixel to one side of the ray or the other by (k / 2) % 2,
+ * and moved across the map by a fraction of a texel of its own: 1 lit, 0 shadowed. On the ray the
+ * map position is linear in t: (s0 + t ds, r0 + t dr, z0 + t dz), s0, r0 and z0 those of the eye;
+ * (os, or) is the half-pixel offset per unit of t.
  */
 static inline vf vol_tap(__global const float *restrict smap, int pitch, const vfx_shadow_t *sh,
                          int k, vf t, vf dt, float s0, vf ds, float r0, vf dr, float z0, vf dz,
                          vf os, vf or_) {
   vf tk = t + dt * ((k + 0.5f) / VOL_SHADOW_TAPS - 0.5f);
   vf s = k & 2 ? ds - os : ds + os, r = k & 2 ? dr - or_ : dr + or_;
-  return vol_lit(smap, pitch, sh, s0 + tk * s, r0 + tk * r, z0 + tk * dz);
+  /* Each tap a different fraction of a texel across the map, every row and column of a
+   * VOL_SHADOW_TAPS-square grid once (3 and 5 are prime to 8). */
+  float fs = ((float)((3 * k) % VOL_SHADOW_TAPS) + 0.5f) / VOL_SHADOW_TAPS - 0.5f;
+  float fr = ((float)((5 * k) % VOL_SHADOW_TAPS) + 0.5f) / VOL_SHADOW_TAPS - 0.5f;
+  return vol_lit(smap, pitch, sh, s0 + fs + tk * s, r0 + fr + tk * r, z0 + tk * dz);
 }
 
 /*

@@ -481,6 +481,73 @@ static void test_shadow(void) {
   free_grid(g);
 }
 
+/*
+ * A shadow edge slanted across the shadow map's texels: a horizontal sheet of medium lit from
+ * straight above through a coarse map (64 texels over the sheet), under an occluder turned
+ * 25 degrees about the vertical, seen from straight below. Where each image row crosses half
+ * the lit value should lie near a straight line; a single texel per shadow test puts it on a
+ * staircase of texel-sized steps (about 4 pixels here).
+ */
+static void test_shadow_staircase(void) {
+  density_grid_t *g = make_grid(1, 1, 1);
+  g->data[0] = 1;
+  rvolume_t v = {.source = VOLUME_GRID,
+                 .min = {-5, -0.05f, -5},
+                 .max = {5, 0.05f, 5},
+                 .density = 0.5f,
+                 .albedo = {1, 1, 1},
+                 .samples = 4,
+                 .grid = g};
+  const int w = 96, h = 96;
+  rcamera_t cam = {.eye = {0, -200, 0}, .target = {0, 0, 0}, .up = {0, 0, 1}, .near_ = 1};
+  cam.far_ = 400;
+  cam.fov_y = (float)(2 * atan(2.0 / 200) * 180 / M_PI); /* 4 units across. */
+  robject_t occ = {.shape = SHAPE_BOX,
+                   .position = {-3.0f, 2, 0},
+                   .scale = {6, 0.2f, 20},
+                   .rotation = {0, 25, 0},
+                   .color = {1, 1, 1}};
+  render_scene_t s = bare_scene(cam);
+  s.light.intensity = 1;
+  s.light.ambient = 0;
+  s.light.shadow_map = 64;
+  s.objects = &occ, s.nobjects = 1;
+  s.volumes = &v, s.nvolumes = 1;
+  /* The occluder's underside, unlit, adds nothing behind the sheet. */
+  float *img = render_f32(&s, w, h, LAYER_ALL);
+  CHECK(img != NULL, "render failed");
+  double lit = 0, xs[96], ys[96];
+  int n = 0;
+  for (int i = 0; img && i < w * h; i++)
+    lit = fmax(lit, img[4 * i]);
+  /* Each row's crossing of half the lit value, between the pixels either side. */
+  for (int y = 8; img && y < h - 8; y++) {
+    const float *row = img + 4 * y * w;
+    for (int x = 1; x < w; x++) {
+      double a = row[4 * (x - 1)] - 0.5 * lit, b = row[4 * x] - 0.5 * lit;
+      if ((a < 0) != (b < 0)) {
+        xs[n] = x - 1 + a / (a - b), ys[n] = y, n++;
+        break;
+      }
+    }
+  }
+  CHECK(n > 60, "the edge crosses only %d rows", n);
+  /* The least-squares line through the crossings, and how far they stray from it. */
+  double sy = 0, sx = 0, syy = 0, sxy = 0;
+  for (int i = 0; i < n; i++)
+    sy += ys[i], sx += xs[i], syy += ys[i] * ys[i], sxy += xs[i] * ys[i];
+  double slope = (n * sxy - sx * sy) / (n * syy - sy * sy), icpt = (sx - slope * sy) / n, rms = 0;
+  for (int i = 0; i < n; i++)
+    rms += pow(xs[i] - (icpt + slope * ys[i]), 2) / n;
+  rms = sqrt(rms);
+  CHECK(fabs(slope) > 0.3, "the edge is not slanted (slope %.3f)", slope);
+  /* One texel per test strays 1.25 pixels (rms); the taps' spread across a texel 0.8. */
+  CHECK(rms < 1.0, "the shadow edge strays %.3f pixels from a straight line", rms);
+  printf("slanted shadow edge: %d rows within %.3f pixels (rms) of a straight line\n", n, rms);
+  free(img);
+  free_grid(g);
+}
+
 /* ---- A grid volume against a fine double-precision march --------------------------------- */
 
 typedef struct ref_vol {
@@ -845,6 +912,7 @@ int main(void) {
   test_transmittance();
   test_no_stripes();
   test_shadow();
+  test_shadow_staircase();
   test_low_resolution();
   test_grid_reference();
   test_light_sweep_threads();
