@@ -216,6 +216,29 @@ static inline float exp_neg(float x) {
 }
 
 /*
+ * The points first + j - off, j = 0 .. count - 1, along an axis of 'n' voxels, all at the same
+ * fraction f past a voxel centre: those between two voxels of the grid, j in [lo, hi), lie
+ * between voxel base + j and the next.
+ */
+typedef struct span {
+  int base, lo, hi;
+  float f;
+} span_t;
+
+static span_t span_of(int first, double off, uint32_t n, int count) {
+  double x0 = first - off;
+  span_t sp = {.base = (int)floor(x0)};
+  sp.f = (float)(x0 - sp.base);
+  sp.lo = -sp.base > 0 ? -sp.base : 0;
+  sp.hi = (int)n - 1 - sp.base < count ? (int)n - 1 - sp.base : count;
+  if (sp.lo > count)
+    sp.lo = count;
+  if (sp.hi < sp.lo)
+    sp.hi = sp.lo;
+  return sp;
+}
+
+/*
  * The light sweep (light_grid) follows the light's rays through the grid, slice by slice along
  * the axis a on which the light moves fastest in voxels, from the light's side. A ray that
  * meets the first slice at lateral voxel coordinates (b, c) = (J_b + jb, J_c + jc) meets slice k
@@ -237,9 +260,11 @@ typedef struct sweep {
   int wb, wc;    /* Its rows and columns. */
   float *tau[2]; /* Per lattice ray, its optical depth: at even slices, at odd ones. */
   float *ext;    /* Per lattice ray, the extinction it met at the last slice. */
-  /* Where a voxel's ray meets the slice before, (ib + db, ic + dc): lattice_taps. */
+  /* Where a voxel's ray meets the slice before, (ib + db, ic + dc): lattice_taps, and along c
+   * the span between two voxels (span_t, below). */
   uint32_t *ub0, *ub1, *uc0, *uc1;
   float *ubw0, *ubw1, *ucw0, *ucw1;
+  span_t up;
   const float *sg;
   float *lg;
   float half;           /* 1/2 the world length of a step between slices. */
@@ -276,19 +301,45 @@ static void lattice_taps(uint32_t *i0, uint32_t *i1, float *w0, float *w1, int c
 }
 
 /* One lattice row of slice k: the extinction 'e' met now, added to the optical depth 'in' of
- * the slice before into 'out' (from nothing at the first slice). */
+ * the slice before into 'out' (from nothing at the first slice). Between two voxels of the row
+ * ('sp') the weights are the same for every ray and the loads contiguous; beside them the taps
+ * take the clamped edges, and 0 beside the grid. */
 PAR_CLONES static void lattice_row(float *restrict out, const float *restrict in,
                                    float *restrict ext, const float *restrict r0,
                                    const float *restrict r1, float b0, float b1,
-                                   const sweep_part_t *p, int wc, int first, float half) {
+                                   const sweep_part_t *p, span_t sp, size_t sc, int wc, int first,
+                                   float half) {
   const uint32_t *restrict c0 = p->ci0, *restrict c1 = p->ci1;
   const float *restrict w0 = p->cw0, *restrict w1 = p->cw1;
-  for (int j = 0; j < wc; j++) {
-    float e =
-        b0 * (w0[j] * r0[c0[j]] + w1[j] * r0[c1[j]]) + b1 * (w0[j] * r1[c0[j]] + w1[j] * r1[c1[j]]);
-    out[j] = first ? half * e : in[j] + half * (ext[j] + e);
-    ext[j] = e;
+  float f = sp.f, g = 1 - f;
+#define LATTICE_RAY(e)                                                                             \
+  do {                                                                                             \
+    float e_ = (e);                                                                                \
+    out[j] = first ? half * e_ : in[j] + half * (ext[j] + e_);                                     \
+    ext[j] = e_;                                                                                   \
+  } while (0)
+#define LATTICE_TAPS(j)                                                                            \
+  (b0 * (w0[j] * r0[c0[j]] + w1[j] * r0[c1[j]]) + b1 * (w0[j] * r1[c0[j]] + w1[j] * r1[c1[j]]))
+  if (b0 == 0 && b1 == 0) { /* A row beside the grid meets no medium. */
+    for (int j = 0; j < wc; j++)
+      LATTICE_RAY(0.0f);
+    return;
   }
+  for (int j = 0; j < sp.lo; j++)
+    LATTICE_RAY(LATTICE_TAPS(j));
+  const float *q0 = r0 + (ptrdiff_t)sp.base * (ptrdiff_t)sc,
+              *q1 = r1 + (ptrdiff_t)sp.base * (ptrdiff_t)sc;
+  if (sc == 1)
+    for (int j = sp.lo; j < sp.hi; j++)
+      LATTICE_RAY(b0 * (g * q0[j] + f * q0[j + 1]) + b1 * (g * q1[j] + f * q1[j + 1]));
+  else
+    for (int j = sp.lo; j < sp.hi; j++)
+      LATTICE_RAY(b0 * (g * q0[j * sc] + f * q0[(j + 1) * sc]) +
+                  b1 * (g * q1[j * sc] + f * q1[(j + 1) * sc]));
+  for (int j = sp.hi; j < wc; j++)
+    LATTICE_RAY(LATTICE_TAPS(j));
+#undef LATTICE_TAPS
+#undef LATTICE_RAY
 }
 
 /*
@@ -308,23 +359,35 @@ PAR_CLONES static void voxel_row(float *restrict out, const float *restrict here
       out[k * sc] = exp_neg(-half * here[k * sc]);
     return;
   }
+  (void)nc;
   const uint32_t *restrict c0 = w->uc0, *restrict c1 = w->uc1;
   const float *restrict w0 = w->ucw0, *restrict w1 = w->ucw1;
   float gb = 1 - fb, gc = 1 - fc;
-#define SWEEP_VOXEL(at)                                                                            \
+  /* The points up the light between two voxels of the row (w->up) share their weights. */
+  span_t sp = w->up;
+  float f = sp.f, g = 1 - f;
+  const float *q0 = r0 + (ptrdiff_t)sp.base * (ptrdiff_t)sc,
+              *q1 = r1 + (ptrdiff_t)sp.base * (ptrdiff_t)sc;
+#define SWEEP_VOXEL(at, u)                                                                         \
   do {                                                                                             \
     float t = gb * (gc * t0[k] + fc * t0[k + 1]) + fb * (gc * t1[k] + fc * t1[k + 1]);             \
-    float u = b0 * (w0[k] * r0[c0[k]] + w1[k] * r0[c1[k]]) +                                       \
-              b1 * (w0[k] * r1[c0[k]] + w1[k] * r1[c1[k]]);                                        \
-    out[at] = exp_neg(-(t + half * (here[at] + u)));                                               \
+    out[at] = exp_neg(-(t + half * (here[at] + (u))));                                             \
   } while (0)
+#define SWEEP_TAPS                                                                                 \
+  (b0 * (w0[k] * r0[c0[k]] + w1[k] * r0[c1[k]]) + b1 * (w0[k] * r1[c0[k]] + w1[k] * r1[c1[k]]))
+  for (int k = 0; k < sp.lo; k++)
+    SWEEP_VOXEL(k * sc, SWEEP_TAPS);
   /* Rows along x (the usual case) are contiguous: that loop vectorises. */
   if (sc == 1)
-    for (uint32_t k = 0; k < nc; k++)
-      SWEEP_VOXEL(k);
+    for (int k = sp.lo; k < sp.hi; k++)
+      SWEEP_VOXEL(k, b0 * (g * q0[k] + f * q0[k + 1]) + b1 * (g * q1[k] + f * q1[k + 1]));
   else
-    for (uint32_t k = 0; k < nc; k++)
-      SWEEP_VOXEL(k * sc);
+    for (int k = sp.lo; k < sp.hi; k++)
+      SWEEP_VOXEL(k * sc, b0 * (g * q0[k * sc] + f * q0[(k + 1) * sc]) +
+                              b1 * (g * q1[k * sc] + f * q1[(k + 1) * sc]));
+  for (int k = sp.hi; k < (int)nc; k++)
+    SWEEP_VOXEL(k * sc, SWEEP_TAPS);
+#undef SWEEP_TAPS
 #undef SWEEP_VOXEL
 }
 
@@ -356,10 +419,11 @@ static void *sweep_rows(void *arg) {
      * every thread, read the slice before's. */
     lattice_taps(p->bi0, p->bi1, p->bw0, p->bw1, w->wb, w->jb0, ob, n[b], stride[b]);
     lattice_taps(p->ci0, p->ci1, p->cw0, p->cw1, w->wc, w->jc0, oc, n[c], stride[c]);
+    span_t sp = span_of(w->jc0, oc, n[c], w->wc);
     for (int jb = p->l0; jb < p->l1; jb++) {
       size_t row = (size_t)jb * w->wc;
       lattice_row(out + row, in + row, w->ext + row, slice + p->bi0[jb], slice + p->bi1[jb],
-                  p->bw0[jb], p->bw1[jb], p, w->wc, k == 0, w->half);
+                  p->bw0[jb], p->bw1[jb], p, sp, stride[c], w->wc, k == 0, w->half);
     }
     if (w->bar)
       sweep_wait(w->bar);
@@ -437,6 +501,7 @@ static int light_grid(vol_entry_t *e, const float *dens, float sigma, const floa
   if (rc == 0) { /* A voxel's ray meets the slice before at (ib + db, ic + dc). */
     lattice_taps(w.ub0, w.ub1, w.ubw0, w.ubw1, (int)n[b], 0, -w.db, n[b], w.stride[b]);
     lattice_taps(w.uc0, w.uc1, w.ucw0, w.ucw1, (int)n[c], 0, -w.dc, n[c], w.stride[c]);
+    w.up = span_of(0, -w.dc, n[c], (int)n[c]);
   }
   for (int i = 0; i < parts; i++) {
     sweep_part_t *q = &part[i];
