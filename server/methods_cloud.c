@@ -313,16 +313,6 @@ static void get_cells_m(call_t *call) {
   size_t n = cloud_cells_count(s->cloud_cells);
   int dens = strcmp(field, "density") == 0;
   size_t nbytes = dens ? 4 * n : n;
-  /* An answer over the connection's output limit would close the connection; refuse it. */
-  size_t sent = base64 ? proto_b64_encoded_len(nbytes) : nbytes;
-  if (sent + 4096 > call->srv->cfg.limits.output_bytes) {
-    call_error(call, PROTO_E_LIMIT, "field",
-               "%s: field: %zu bytes of %s are over the output limit of %zu bytes per "
-               "connection (limits.output_bytes)",
-               proto_err_message(PROTO_E_LIMIT), sent, field,
-               (size_t)call->srv->cfg.limits.output_bytes);
-    return;
-  }
   cells_out_t *o = malloc(sizeof *o);
   if (!o) {
     call_error(call, PROTO_E_INTERNAL, NULL, "internal error: out of memory");

@@ -200,6 +200,15 @@ static void on_render_done(job_t *j) {
   free(rc);
 }
 
+/* A bound on the bytes the answer to 'j' writes: its line and the frame, a PNG at worst a little
+ * over the raw pixels (stored deflate blocks, filter bytes, chunks); base64 a third more. */
+static size_t render_answer_bound(const job_t *j, int base64) {
+  size_t npix = (size_t)j->params.width * j->params.height;
+  size_t px = j->params.format == PROTO_FMT_RGBAF32 ? 16 : 4;
+  size_t n = px * npix + (j->params.format == PROTO_FMT_PNG ? npix / 64 + j->params.height : 0);
+  return (base64 ? proto_b64_encoded_len(n) : n) + 4096;
+}
+
 static void render_m(call_t *call) {
   scene_entry_t *e = call_scene(call);
   if (!e)
@@ -223,13 +232,16 @@ static void render_m(call_t *call) {
   rc->t = t ? cJSON_Duplicate(t, 1) : NULL;
   rc->job.done = on_render_done;
   rc->job.ctx = rc;
+  size_t bound = render_answer_bound(&rc->job, rc->base64);
   if (worker_submit(call->srv->worker, &rc->job) != 0) {
     render_scene_unref(rc->job.scene);
     cJSON_Delete(rc->t);
     free(rc);
     call_error(call, PROTO_E_BUSY, NULL, "busy: the render queue is full (%d jobs); retry later",
                call->srv->cfg.render_queue);
+    return;
   }
+  conn_promise(call, bound);
 }
 
 static const sch_field_t render_params[] = {

@@ -3,6 +3,13 @@
  * handing complete lines to the dispatcher, writing replies in request order, the idle
  * timeout, the output limit, and closing. A connection is freed only when its handles are
  * closed and no call or subscription still points at it ('refs').
+ *
+ * The output limit (limits.output_bytes) is backpressure, not a cut-off: while a connection's
+ * unsent output and the answers its queued renders will write pass it, no further request is
+ * read from it, so a client that pipelines is slowed to the pace it reads at, and one answer
+ * larger than the limit (a 4096² float frame) still goes out whole. Only a connection whose
+ * output stays over the limit with nothing taken off the socket for OUT_STALL_MS is closed,
+ * as not reading.
  */
 #include <stdio.h>
 #include <stdlib.h>
@@ -13,6 +20,9 @@
 #include "jobs.h"
 #include "log.h"
 #include "server.h"
+
+/* How long output over the limit may sit with nothing written before the connection closes. */
+#define OUT_STALL_MS 10000
 
 typedef struct write_req {
   uv_write_t req;
@@ -64,7 +74,51 @@ void conn_close(conn_t *c) {
   s->nconns--;
   uv_close((uv_handle_t *)c->stream, on_handle_closed);
   uv_close((uv_handle_t *)&c->idle, on_handle_closed);
+  uv_close((uv_handle_t *)&c->stall, on_handle_closed);
   LOG(LOG_DEBUG, "net", "connection %llu closed", (unsigned long long)c->id);
+}
+
+/* Whether the output written and promised passes the limit: no further request is read. */
+static int conn_full(const conn_t *c) {
+  return c->out_bytes + c->promised > c->srv->cfg.limits.output_bytes;
+}
+
+static void pump(conn_t *c);
+static void on_read(uv_stream_t *stream, ssize_t nread, const uv_buf_t *buf);
+static void on_alloc(uv_handle_t *h, size_t suggested, uv_buf_t *buf);
+
+static void on_stall(uv_timer_t *t) {
+  conn_t *c = t->data;
+  LOG(LOG_WARN, "net", "connection %llu is not reading: %zu bytes unsent for %d s, closing",
+      (unsigned long long)c->id, c->out_bytes, OUT_STALL_MS / 1000);
+  conn_close(c);
+}
+
+/* After output left or was promised: the stall timer runs while the unsent output is over the
+ * limit (restarted by every write that completes), and reading resumes once the output written
+ * and promised is back under it. */
+static void conn_output_changed(conn_t *c, int progress) {
+  if (c->closing)
+    return;
+  if (c->out_bytes > c->srv->cfg.limits.output_bytes) {
+    if (progress || !uv_is_active((uv_handle_t *)&c->stall))
+      uv_timer_start(&c->stall, on_stall, OUT_STALL_MS, 0);
+  } else {
+    uv_timer_stop(&c->stall);
+  }
+  if (c->out_paused && !conn_full(c)) {
+    c->out_paused = 0;
+    if (!c->held && !c->draining) {
+      pump(c);
+      if (!c->held && !c->closing && !c->draining && !c->out_paused)
+        uv_read_start(c->stream, on_alloc, on_read);
+    }
+  }
+}
+
+void conn_promise(call_t *call, size_t bytes) {
+  call->reply->promised += bytes;
+  call->conn->promised += bytes;
 }
 
 static void on_write(uv_write_t *req, int status) {
@@ -79,10 +133,13 @@ static void on_write(uv_write_t *req, int status) {
       LOG(LOG_DEBUG, "net", "connection %llu write failed: %s", (unsigned long long)c->id,
           uv_strerror(status));
       conn_close(c);
-    } else if (uv_stream_get_write_queue_size(c->stream) == 0) {
-      frames_conn_drained(c);
-      if (c->draining && !c->head && c->out_bytes == 0)
-        conn_close(c);
+    } else {
+      if (uv_stream_get_write_queue_size(c->stream) == 0) {
+        frames_conn_drained(c);
+        if (c->draining && !c->head && c->out_bytes == 0)
+          conn_close(c);
+      }
+      conn_output_changed(c, 1);
     }
   }
   conn_unref(c);
@@ -119,11 +176,7 @@ void conn_write(conn_t *c, char *line, size_t len, unsigned char *att, size_t at
     conn_close(c);
     return;
   }
-  if (c->out_bytes > c->srv->cfg.limits.output_bytes) {
-    LOG(LOG_WARN, "net", "connection %llu is not reading: %zu bytes unsent, closing",
-        (unsigned long long)c->id, c->out_bytes);
-    conn_close(c);
-  }
+  conn_output_changed(c, 0);
 }
 
 /* The response of part 'p' printed, with its newline, into '*len' bytes: its own line when it
@@ -209,6 +262,7 @@ static void write_reply(conn_t *c, reply_t *r) {
       }
     }
   }
+  c->promised -= r->promised;
   free_reply(r);
   if (!line || (att_len && !att)) {
     free(line);
@@ -282,7 +336,7 @@ static int blank(const char *line, size_t len) {
 static void pump(conn_t *c) {
   /* Calls may close the connection; hold a reference while lines are dispatched. */
   c->refs++;
-  while (!c->held) {
+  while (!c->held && !(c->out_paused = conn_full(c))) {
     char *line;
     size_t len;
     int rc = proto_reader_line(&c->reader, &line, &len);
@@ -301,7 +355,7 @@ static void pump(conn_t *c) {
     if (c->closing || c->draining)
       break;
   }
-  if (c->held && !c->closing)
+  if ((c->held || c->out_paused) && !c->closing)
     uv_read_stop(c->stream);
   conn_unref(c);
 }
@@ -343,7 +397,7 @@ void conn_release(conn_t *c) {
   dispatch_resume(c);
   if (!c->held && !c->closing && !c->draining) {
     pump(c);
-    if (!c->held && !c->closing && !c->draining)
+    if (!c->held && !c->closing && !c->draining && !c->out_paused)
       uv_read_start(c->stream, on_alloc, on_read);
   }
   conn_unref(c);
@@ -369,7 +423,9 @@ static void on_connection(uv_stream_t *listener, int status) {
   c->stream->data = c;
   uv_timer_init(s->loop, &c->idle);
   c->idle.data = c;
-  c->refs = 2; /* The stream and the idle timer. */
+  uv_timer_init(s->loop, &c->stall);
+  c->stall.data = c;
+  c->refs = 3; /* The stream, the idle timer and the stall timer. */
   c->id = ++s->next_conn_id;
   c->authed = s->cfg.token[0] == '\0';
   proto_reader_init(&c->reader, s->cfg.limits.line_bytes);

@@ -42,9 +42,10 @@ typedef struct reply_part {
  */
 struct reply {
   reply_t *next;
-  int batch;   /* 1: the parts are written as one JSON array. */
-  int nparts;  /* Requests in the line. */
-  int pending; /* Parts not done yet. */
+  int batch;       /* 1: the parts are written as one JSON array. */
+  int nparts;      /* Requests in the line. */
+  int pending;     /* Parts not done yet. */
+  size_t promised; /* Bytes its parts' work will write (conn_promise), counted in the conn's. */
   reply_part_t parts[];
 };
 
@@ -55,12 +56,15 @@ struct conn {
   } h;
   uv_stream_t *stream;
   uv_timer_t idle;
+  uv_timer_t stall; /* Runs while the output is over the limit; closes when nothing is read. */
   server_t *srv;
   conn_t *prev, *next;
   uint64_t id;
   proto_reader_t reader;
   reply_t *head, *tail; /* Replies not yet written. */
   size_t out_bytes;     /* Bytes handed to libuv and not yet written to the socket. */
+  size_t promised;      /* Bytes of answers queued (render jobs) and not yet handed to libuv. */
+  int out_paused;       /* Reading stopped because out_bytes + promised passed the limit. */
   int refs;             /* Open handles + calls in flight + subscriptions. */
   int closing;          /* No further reads; writes are dropped. */
   int draining;         /* Close once every reply is written (shutdown, oversize line). */
@@ -135,6 +139,9 @@ void conn_write(conn_t *c, char *line, size_t len, unsigned char *att, size_t at
 void conn_close(conn_t *c);
 /* Writes every reply at the head of the queue that is complete. */
 void conn_flush_replies(conn_t *c);
+/* Counts 'bytes' that the work of 'call' will write towards its connection's output, so that
+ * no further request is read while the output written and promised passes the limit. */
+void conn_promise(call_t *call, size_t bytes);
 void conn_unref(conn_t *c);
 /* Stops dispatching the connection's requests until a matching conn_release. */
 void conn_hold(conn_t *c);

@@ -2,7 +2,7 @@
 """
 Load and resource behaviour of a real volfxd: many concurrent clients, clients that vanish
 mid-render, a subscriber that never reads (latest frame wins: memory stays bounded and other
-clients are served), and the connection limit.
+clients are served), the output limit as backpressure, and the connection limit.
 
     python3 tests/integration/test_load.py --bin build/bin
 """
@@ -216,6 +216,62 @@ def slow_subscriber(s):
         s.fail("a slow subscriber is not disconnected (latest frame wins)", str(e))
     sub.close()
     other.close()
+
+
+@T
+def output_backpressure(s):
+    """limits.output_bytes (here 1 MiB) is backpressure: one answer larger than it goes out
+    whole, a client that pipelines and reads slowly gets every answer in order while the
+    server holds about the limit for it, and only a connection that stops reading altogether is
+    closed, after 10 s, without disturbing the others."""
+    path = mock.config_file({"limits": {"output_bytes": 1 << 20}})
+    frame = {"width": 256, "height": 256, "format": "rgbaf32", "layers": ["objects"]}
+    with Server(s.bin, "--config", path) as srv:
+        c = srv.connect()
+        r, a = c.ok("render", dict(frame, width=512, height=512))
+        s.eq(len(a or b""), 512 * 512 * 16, "a 4 MiB frame over a 1 MiB limit comes whole")
+        s.eq(c.ok("server.info", {})[0].get("name"), "volfxd", "and the connection goes on")
+        # Eight pipelined 1 MiB frames, read at about 4 MB/s.
+        n = 8
+        for i in range(n):
+            c.send(c.request("render", dict(frame, t=i)))
+        watcher = srv.connect()
+        got, queued = [], 0
+        while len(got) < n:
+            line = c.read_line(60)
+            msg = mock.loads(line.decode())
+            size = msg.get("result", {}).get("attachment", {}).get("bytes", 0)
+            while len(c.buf) < size:
+                c._fill(60)
+                time.sleep(0.016)
+                mem = watcher.ok("stats", {})[0].get("memory") or {}
+                queued = max(queued, mem.get("output_queued_bytes", 0))
+            del c.buf[:size]
+            got.append(msg.get("result", {}).get("t"))
+        s.eq(got, list(range(n)), "eight pipelined frames answered in order to a slow reader")
+        s.check(queued <= (2 << 20) + (1 << 18), "the server held about the limit for it",
+                "%d bytes queued at most" % queued)
+        s.eq(c.ok("server.info", {})[0].get("name"), "volfxd", "the slow reader is still served")
+        # A client that stops reading: closed after 10 s with its output over the limit.
+        stuck = mock.Conn(srv.host, srv.port, rcvbuf=65536)
+        for i in range(n):
+            stuck.send(stuck.request("render", frame))
+        t0 = time.monotonic()
+        s.eq(watcher.ok("server.info", {})[0].get("name"), "volfxd", "others are served meanwhile")
+        time.sleep(12)
+        closed = False
+        try:
+            while True:
+                stuck._fill(5)
+        except mock.Closed:
+            closed = True
+        except socket.timeout:
+            pass
+        s.check(closed, "a client that does not read is closed", "%.1f s" % (time.monotonic() - t0))
+        s.check("is not reading" in srv.log_text(), "the log says why")
+        mem = watcher.ok("stats", {})[0].get("memory") or {}
+        s.check(mem.get("output_queued_bytes", 1 << 40) < 1 << 20, "its output is freed",
+                short(mem))
 
 
 def _limit_server(s, n):
