@@ -102,6 +102,9 @@ static void scene_get_m(call_t *call) {
   call_result(call, v);
 }
 
+static void play_start(scene_entry_t *e, double rate);
+static void play_stop(scene_entry_t *e);
+
 static void scene_set_m(call_t *call) {
   scene_entry_t *e = call_scene(call);
   if (!e)
@@ -136,6 +139,14 @@ static void scene_set_m(call_t *call) {
     answer_scene_error(call, &err, NULL);
     return;
   }
+  /* sim.playing set in the document plays or pauses the scene, as sim.play at its default
+   * rate (60 steps a second) and sim.pause would. */
+  cJSON *playing = scene_get(e->scene, "sim.playing", &err);
+  if (playing && cJSON_IsTrue(playing) && !(e->rate > 0))
+    play_start(e, 60);
+  else if (playing && !cJSON_IsTrue(playing) && e->rate > 0)
+    play_stop(e);
+  cJSON_Delete(playing);
   cJSON *r = cJSON_CreateObject();
   cJSON_AddNumberToObject(r, "version", (double)e->scene->version);
   call_result(call, r);
@@ -210,11 +221,8 @@ static void set_playing(scene_entry_t *e, int playing) {
   cJSON_Delete(patch);
 }
 
-static void sim_play(call_t *call) {
-  scene_entry_t *e = call_scene(call);
-  if (!e)
-    return;
-  e->rate = cJSON_GetObjectItem(call->params, "rate")->valuedouble;
+static void play_start(scene_entry_t *e, double rate) {
+  e->rate = rate;
   e->play_start_ns = now_ns();
   e->play_steps = 0;
   /* Tick at the step rate up to 200 Hz; faster rates take several steps per tick. */
@@ -222,6 +230,19 @@ static void sim_play(call_t *call) {
   uint64_t ms = (uint64_t)(1000.0 / hz);
   uv_timer_start(&e->play, on_play, ms ? ms : 1, ms ? ms : 1);
   set_playing(e, 1);
+}
+
+static void play_stop(scene_entry_t *e) {
+  uv_timer_stop(&e->play);
+  e->rate = 0;
+  set_playing(e, 0);
+}
+
+static void sim_play(call_t *call) {
+  scene_entry_t *e = call_scene(call);
+  if (!e)
+    return;
+  play_start(e, cJSON_GetObjectItem(call->params, "rate")->valuedouble);
   cJSON *r = clock_json(e);
   cJSON_AddBoolToObject(r, "playing", 1);
   cJSON_AddNumberToObject(r, "rate", e->rate);
@@ -232,9 +253,7 @@ static void sim_pause(call_t *call) {
   scene_entry_t *e = call_scene(call);
   if (!e)
     return;
-  uv_timer_stop(&e->play);
-  e->rate = 0;
-  set_playing(e, 0);
+  play_stop(e);
   cJSON *r = clock_json(e);
   cJSON_AddBoolToObject(r, "playing", 0);
   call_result(call, r);

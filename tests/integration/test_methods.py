@@ -393,6 +393,24 @@ def sim_play_pause(s):
     c.ok("sim.pause", {"scene": "play"})
     r, _ = c.ok("sim.play", {"scene": "play", "rate": 1000})
     s.eq(r.get("playing"), True, "sim.play again")
+    # sim.playing set in the document plays and pauses the scene as sim.play and sim.pause do.
+    c.ok("sim.pause", {"scene": "play"})
+    f0 = c.ok("scene.get", {"scene": "play", "path": "sim.frame"})[0]
+    c.ok("scene.set", {"scene": "play", "patch": {"sim": {"playing": True}}})
+    time.sleep(0.3)
+    f1 = c.ok("scene.get", {"scene": "play", "path": "sim.frame"})[0]
+    s.check(f1 > f0, "scene.set sim.playing true runs the clock", "frame %s then %s" % (f0, f1))
+    listed = [x for x in c.ok("scene.list", {})[0].get("scenes", []) if x.get("name") == "play"]
+    s.eq(listed and listed[0].get("playing"), True, "scene.list shows it playing")
+    c.ok("scene.set", {"scene": "play", "path": "sim.playing", "value": False})
+    f2 = c.ok("scene.get", {"scene": "play", "path": "sim.frame"})[0]
+    time.sleep(0.2)
+    s.eq(c.ok("scene.get", {"scene": "play", "path": "sim.frame"})[0], f2,
+         "scene.set sim.playing false stops it")
+    c.ok("sim.play", {"scene": "play", "rate": 100})
+    c.ok("sim.pause", {"scene": "play"})
+    s.eq(c.ok("scene.get", {"scene": "play", "path": "sim.playing"})[0], False,
+         "sim.pause shows in the document")
     c.ok("scene.delete", {"name": "play"})
 
 
