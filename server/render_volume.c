@@ -400,7 +400,7 @@ static void *sweep_rows(void *arg) {
   for (int k = 0; k < (int)n[a]; k++) {
     int s = w->dir > 0 ? (int)n[a] - 1 - k : k;
     const float *slice = w->sg + s * stride[a];
-    const float *before = slice - w->dir * (ptrdiff_t)stride[a];
+    const float *before = slice + w->dir * (ptrdiff_t)stride[a]; /* Towards the light. */
     const float *in = w->tau[(k + 1) & 1];
     float *out = w->tau[k & 1];
     double ob = k * w->db, oc = k * w->dc;
