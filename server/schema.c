@@ -380,15 +380,28 @@ cJSON *sch_defaults(const sch_field_t *f) {
   return f ? make_default(f, "", &err) : NULL;
 }
 
+/* Adds the number 'v' to 's' as 'name'. cJSON prints doubles with 15 significant digits when
+ * they read back within its tolerance, which turns 2^53 - 1 into 9007199254740990: integers
+ * from 10^15 up are printed whole instead. */
+static void add_number(cJSON *s, const char *name, double v) {
+  char text[32];
+  if (fabs(v) >= 1e15 && fabs(v) < 9.2e18 && v == floor(v)) {
+    snprintf(text, sizeof text, "%.0f", v);
+    cJSON_AddRawToObject(s, name, text);
+  } else {
+    cJSON_AddNumberToObject(s, name, v);
+  }
+}
+
 /* Adds the range keywords of 'f' to the JSON Schema 's'; infinite bounds are left out since
  * JSON cannot carry them. */
 static void add_range(cJSON *s, const sch_field_t *f) {
   if (!has_range(f))
     return;
   if (isfinite(f->min))
-    cJSON_AddNumberToObject(s, (f->flags & SCH_POSITIVE) ? "exclusiveMinimum" : "minimum", f->min);
+    add_number(s, (f->flags & SCH_POSITIVE) ? "exclusiveMinimum" : "minimum", f->min);
   if (isfinite(f->max))
-    cJSON_AddNumberToObject(s, "maximum", f->max);
+    add_number(s, "maximum", f->max);
 }
 
 cJSON *sch_to_json_schema(const sch_field_t *f) {

@@ -123,6 +123,10 @@ def openrpc_document(s):
     for name in sorted(byname):
         s.check(name in documented, "rpc.discover method %s is documented in docs/protocol.md"
                 % name)
+    # Integer bounds past 10^15 are published exactly (cJSON alone prints 2^53 - 1 rounded).
+    unsub = {p.get("name"): p for p in byname.get("frames.unsubscribe", {}).get("params", [])}
+    idmax = resolve(r, (unsub.get("id") or {}).get("schema") or {}).get("maximum")
+    s.eq(idmax, 2 ** 53 - 1, "frames.unsubscribe id's maximum is 2^53 - 1 exactly")
     for name, m in sorted(byname.items()):
         params = m.get("params")
         if not s.check(isinstance(params, list), "%s params is an array" % name, short(m)):
