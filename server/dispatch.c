@@ -274,15 +274,16 @@ static void dispatch_one(conn_t *c, reply_t *r, int i, const cJSON *msg) {
     return;
   }
   const method_t *m = method_find(req.method);
+  /* Before 'auth', unknown methods are unauthorized too, so method names cannot be probed. */
+  if (!c->authed && !(m && (m->flags & METHOD_NO_AUTH))) {
+    part_error_n(c, r, i, req.id, !req.id, PROTO_E_UNAUTHORIZED,
+                 "unauthorized: this server needs 'auth' with its token first", NULL);
+    return;
+  }
   if (!m) {
     char text[256];
     snprintf(text, sizeof text, "method not found: '%.128s'", req.method);
     part_error_n(c, r, i, req.id, !req.id, PROTO_E_METHOD_NOT_FOUND, text, NULL);
-    return;
-  }
-  if (!c->authed && !(m->flags & METHOD_NO_AUTH)) {
-    part_error_n(c, r, i, req.id, !req.id, PROTO_E_UNAUTHORIZED,
-                 "unauthorized: this server needs 'auth' with its token first", NULL);
     return;
   }
   if (req.params && !cJSON_IsObject(req.params)) {

@@ -77,6 +77,8 @@ def _token_server_checks(s, srv, token):
     c = srv.connect()
     expect_error(s, c, "server.info", {}, E_UNAUTHORIZED, what="server.info before auth")
     expect_error(s, c, "scene.list", {}, E_UNAUTHORIZED, what="scene.list before auth")
+    expect_error(s, c, "no.such.method", {}, E_UNAUTHORIZED,
+                 what="an unknown method before auth (no probing of names)")
     expect_error(s, c, "auth", {"token": token + "x"}, E_UNAUTHORIZED, what="auth, wrong token")
     # The connection stays usable after a wrong token.
     expect_error(s, c, "server.info", {}, E_UNAUTHORIZED,
@@ -86,6 +88,7 @@ def _token_server_checks(s, srv, token):
     info, _ = c.ok("server.info", {})
     s.eq(info.get("auth_required"), True, "server.info auth_required with a token")
     c.ok("scene.list", {})
+    expect_error(s, c, "no.such.method", {}, E_METHOD, what="an unknown method after auth")
     # Another connection is not authenticated by the first.
     c2 = srv.connect()
     expect_error(s, c2, "server.shutdown", {}, E_UNAUTHORIZED,
