@@ -89,7 +89,7 @@ int render_job_from_params(server_t *s, scene_entry_t *e, const cJSON *params, j
   double h = cJSON_GetObjectItem(params, "height")->valuedouble;
   if (w > side || h > side) {
     snprintf(path, pathlen, w > side ? "width" : "height");
-    snprintf(msg, msglen, "limit exceeded: %s %.0f is over limits.frame_side (%u)",
+    snprintf(msg, msglen, "limit exceeded: %s %.15g is over limits.frame_side (%u)",
              w > side ? "width" : "height", w > side ? w : h, side);
     return PROTO_E_LIMIT;
   }

@@ -124,6 +124,12 @@ static void scene_set_m(call_t *call) {
     defer_arm(call, &want);
     rc = scene_patch(e->scene, patch, &err);
   } else if (path && value && !patch) {
+    if (!path->valuestring || !path->valuestring[0]) {
+      call_error(call, PROTO_E_INVALID_PARAMS, "path",
+                 "invalid params: path: a path must name a member of the scene (use a patch for "
+                 "the whole scene)");
+      return;
+    }
     defer_arm(call, &want);
     rc = scene_set_path(e->scene, path->valuestring, value, &err);
   } else {

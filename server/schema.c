@@ -135,6 +135,14 @@ static int check_number(const sch_field_t *f, double v, const char *path, sch_er
   fmt_num(a, sizeof a, v);
   fmt_num(lo, sizeof lo, f->min);
   fmt_num(hi, sizeof hi, f->max);
+  const char *u0 = f->unit ? " (" : "", *u = f->unit ? f->unit : "", *u1 = f->unit ? ")" : "";
+  /* A bound left open (a limit the server applies later, such as limits.frame_side) is not
+   * printed as an infinity. */
+  if (isinf(f->max) && below)
+    return fail(err, path, "%s is below the %s %s%s%s%s", a,
+                (f->flags & SCH_POSITIVE) ? "exclusive minimum" : "minimum", lo, u0, u, u1);
+  if (isinf(f->min) && above)
+    return fail(err, path, "%s is above the maximum %s%s%s%s", a, hi, u0, u, u1);
   return fail(err, path, "%s is out of range %c%s, %s%c%s%s%s", a,
               (f->flags & SCH_POSITIVE) || isinf(f->min) ? '(' : '[', lo, hi,
               isinf(f->max) ? ')' : ']', f->unit ? " (" : "", f->unit ? f->unit : "",

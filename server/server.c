@@ -39,8 +39,9 @@ cJSON *server_load_preset(server_t *s, const char *name, scene_error_t *err) {
   if (!text) {
     err->code = PROTO_E_NOT_FOUND;
     snprintf(err->path, sizeof err->path, "preset");
-    snprintf(err->message, sizeof err->message, "no preset '%.63s' (%.120s: %.40s)", name, path,
-             strerror(errno));
+    /* A preset's own file is named relative to the presets directory, not as a server path. */
+    snprintf(err->message, sizeof err->message, "no preset '%.63s' (%.120s%s: %.40s)", name,
+             is_file ? path : name, is_file ? "" : ".json", strerror(errno));
     return NULL;
   }
   cJSON *doc = cJSON_Parse(text);

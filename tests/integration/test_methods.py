@@ -234,6 +234,12 @@ def scene_set(s):
     s.eq(_version(c, "s1"), r.get("version"), "scene.list version follows scene.set")
     cam, _ = c.ok("scene.get", {"scene": "s1", "path": "camera"})
     s.eq(cam.get("fov_y"), 47.5, "merge patch sets camera.fov_y")
+    expect_error(s, c, "scene.set", {"scene": "s1", "path": "", "value": {}}, E_PARAMS, "path",
+                 "an empty path names 'path'")
+    resp = expect_error(s, c, "scene.create", {"name": "s9", "preset": "nope"}, E_NOT_FOUND,
+                        "preset", "an unknown preset")
+    s.check("/" not in (resp.get("error") or {}).get("message", "/"),
+            "an unknown preset's message shows no server path", short(resp))
     s.eq(without(cam, "fov_y"), without(doc0["camera"], "fov_y"),
          "merge patch leaves the other camera members alone")
     doc1, _ = c.ok("scene.get", {"scene": "s1"})
@@ -570,6 +576,13 @@ def render_beauty(s):
             ({"bogus": 1}, E_PARAMS, "bogus"), ({"scene": "nope"}, E_NOT_FOUND, "scene")):
         p = dict({"scene": "r1", "width": 16, "height": 16}, **bad)
         expect_error(s, c, "render", p, code, path, "render %s" % short(bad))
+    # Messages name the value readably: no infinity for a bound the limit sets, no 300 digits.
+    resp = expect_error(s, c, "render", {"scene": "r1", "width": 0}, E_PARAMS, "width")
+    s.check("inf" not in (resp.get("error") or {}).get("message", "x"),
+            "width 0: the message gives no infinite bound", short(resp))
+    resp = expect_error(s, c, "render", {"scene": "r1", "width": 1e300}, E_LIMIT, "width")
+    s.check(len((resp.get("error") or {}).get("message", "")) < 120,
+            "width 1e300: a short message", short(resp))
     for layers in (["nope"], "objects", [1]):
         resp = expect_error(s, c, "render", {"scene": "r1", "width": 8, "height": 8,
                                              "layers": layers}, E_PARAMS, None,
