@@ -131,12 +131,14 @@ static void do_stop(uv_idle_t *idle) {
   uv_idle_stop(idle);
   uv_close((uv_handle_t *)idle, on_closed_nothing);
   LOG(LOG_INFO, "server", "stopping");
+  /* The jobs end first, so that their clients' last job.progress (failed) is queued before
+   * net_stop closes the connections that have nothing left to write. */
+  jobs_server_stopping(s);
   net_stop(s);
   while (s->scenes)
     server_remove_scene(s, s->scenes);
   uv_close((uv_handle_t *)&s->sigint, on_closed_nothing);
   uv_close((uv_handle_t *)&s->sigterm, on_closed_nothing);
-  jobs_server_stopping(s);
   /* Answers every queued render; the replies are written before the connections close. */
   worker_stop(s->worker);
   s->worker = NULL;

@@ -195,6 +195,32 @@ def scene_deleted_mid_job(s):
 
 
 @T
+def shutdown_fails_the_job(s):
+    """server.shutdown during a job: its client gets a last job.progress, failed with a reason,
+    before the connection closes."""
+    with mock.Server(s.bin) as srv:
+        c = srv.connect()
+        c.ok("scene.create", {"name": "long", "preset": "demo"})
+        r, _ = c.ok("render.sequence", dict(SIZE, scene="long", first=0, last=100000,
+                                            dir="long"))
+        job = r.get("id")
+        c.recv_notification(timeout=60)
+        other = srv.connect()
+        other.ok("server.shutdown", {})
+        last = None
+        try:
+            while True:
+                msg, _ = c.recv_notification(timeout=30)
+                if msg.get("method") == "job.progress" and msg.get("params", {}).get("id") == job:
+                    last = msg.get("params")
+        except (mock.Closed, OSError):
+            pass
+        s.eq((last or {}).get("state"), "failed", "the last job.progress says failed")
+        s.check("shutting down" in (last or {}).get("error", ""), "and why", mock.short(last))
+        s.eq(srv.wait_exit(15), 0, "the server exits cleanly")
+
+
+@T
 def bad_requests(s):
     c = s.srv.connect()
     c.ok("scene.create", {"name": "bad", "preset": "paper-000"})
