@@ -35,6 +35,28 @@ static reply_t *reply_append(conn_t *c, int nparts, int batch) {
   return r;
 }
 
+/* Echoes the client's 't' (render, frames) in the data of the error 'response', as the results
+ * do, so that a client measuring latency can match its failures too. */
+static void echo_t(cJSON *response, const cJSON *params) {
+  const cJSON *t = cJSON_IsObject(params) ? cJSON_GetObjectItemCaseSensitive(params, "t") : NULL;
+  cJSON *error = response ? cJSON_GetObjectItemCaseSensitive(response, "error") : NULL;
+  if (!t || !error)
+    return;
+  cJSON *data = cJSON_GetObjectItemCaseSensitive(error, "data");
+  if (!data)
+    data = cJSON_AddObjectToObject(error, "data");
+  if (cJSON_IsObject(data))
+    cJSON_AddItemToObject(data, "t", cJSON_Duplicate(t, 1));
+}
+
+/* Whether the method takes a 't' to echo. */
+static int takes_t(const method_t *m) {
+  for (const sch_field_t *f = m && m->params ? m->params->fields : NULL; f && f->name; f++)
+    if (strcmp(f->name, "t") == 0)
+      return 1;
+  return 0;
+}
+
 /* Fills a part that never became a call (envelope errors). 'notification' marks a valid
  * request without an id, which JSON-RPC never answers, not even with an error. */
 static void part_error_n(conn_t *c, reply_t *r, int i, const cJSON *id, int notification, int code,
@@ -248,7 +270,9 @@ void call_error(call_t *call, int code, const char *path, const char *fmt, ...) 
   vsnprintf(msg, sizeof msg, fmt, ap);
   va_end(ap);
   call->srv->stats.errors++;
-  call_finish(call, proto_make_error(call->id, code, msg, path), NULL, 0);
+  cJSON *response = proto_make_error(call->id, code, msg, path);
+  echo_t(response, call->params);
+  call_finish(call, response, NULL, 0);
 }
 
 scene_entry_t *call_scene(call_t *call) {
@@ -298,6 +322,8 @@ static void dispatch_one(conn_t *c, reply_t *r, int i, const cJSON *msg) {
     char text[600];
     snprintf(text, sizeof text, "invalid params: %s", params ? err.message : "out of memory");
     part_error_n(c, r, i, req.id, !req.id, PROTO_E_INVALID_PARAMS, text, params ? err.path : NULL);
+    if (takes_t(m))
+      echo_t(r->parts[i].response, req.params);
     return;
   }
   call_t *call = calloc(1, sizeof *call);

@@ -515,6 +515,12 @@ def render_beauty(s):
     s.eq(rt.get("t"), t, "render echoes t")
     rt, _ = c.ok("render", {"scene": "r1", "width": 8, "height": 8, "t": 12345.5})
     s.eq(rt.get("t"), 12345.5, "render echoes a numeric t")
+    for bad, code in (({"width": 0}, E_PARAMS), ({"width": 5000}, E_LIMIT),
+                      ({"scene": "nope"}, E_NOT_FOUND)):
+        resp = expect_error(s, c, "render", dict({"scene": "r1", "width": 8, "height": 8,
+                                                  "t": t}, **bad), code)
+        s.eq(((resp.get("error") or {}).get("data") or {}).get("t"), t,
+             "a failed render %s echoes t in error.data" % short(bad))
     # base64: data instead of raw bytes, attachment.bytes the decoded size.
     rb, none = c.ok("render", {"scene": "r1", "width": w, "height": h, "encoding": "base64"})
     s.check(none is None, "base64 render has no raw attachment bytes")
