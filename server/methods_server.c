@@ -63,6 +63,9 @@ static void auth(call_t *call) {
     return;
   }
   call->conn->authed = 1;
+  /* The idle timeout counts from here: before, the connection's traffic did not reset it. */
+  if (call->srv->cfg.idle_timeout_s > 0 && !call->conn->closing)
+    uv_timer_again(&call->conn->idle);
   cJSON *r = cJSON_CreateObject();
   cJSON_AddBoolToObject(r, "authenticated", 1);
   call_result(call, r);

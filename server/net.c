@@ -377,7 +377,9 @@ static void on_read(uv_stream_t *stream, ssize_t nread, const uv_buf_t *buf) {
   }
   if (nread == 0 || c->closing || c->draining)
     return;
-  if (c->srv->cfg.idle_timeout_s > 0)
+  /* Only an authenticated connection's traffic keeps it open: one that never authenticates is
+   * closed after the idle timeout whatever it sends, so blank lines cannot hold the slots. */
+  if (c->srv->cfg.idle_timeout_s > 0 && c->authed)
     uv_timer_again(&c->idle);
   if (proto_reader_feed(&c->reader, buf->base, (size_t)nread) != PROTO_READ_OK) {
     conn_close(c);

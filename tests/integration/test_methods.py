@@ -1018,6 +1018,24 @@ def idle_timeout(s):
         except (mock.Closed, OSError) as e:
             s.fail("a subscribed connection stays open past the idle timeout", str(e))
         s.check(n >= 10, "a subscribed idle connection keeps receiving frames", "%d frames" % n)
+    # With a token: blank lines keep an authenticated connection open, not an anonymous one.
+    with Server(s.bin, "--idle-timeout", "1", "--token", "tok") as srv:
+        anon, authed = srv.connect(), srv.connect()
+        authed.ok("auth", {"token": "tok"})
+        t0 = time.monotonic()
+        anon_closed = False
+        while time.monotonic() - t0 < 2.5:
+            try:
+                anon.send_raw(b"\n")
+                authed.send_raw(b"\n")
+            except OSError:
+                anon_closed = True
+                break
+            time.sleep(0.2)
+        anon_closed = anon_closed or anon.expect_eof(timeout=2)
+        s.check(anon_closed, "an unauthenticated connection is closed despite keep-alive lines")
+        s.eq(authed.ok("server.info", {})[0].get("name"), "volfxd",
+             "an authenticated one that sends them stays open")
 
 
 @T
