@@ -364,8 +364,12 @@ static void on_read(uv_stream_t *stream, ssize_t nread, const uv_buf_t *buf) {
   conn_t *c = stream->data;
   if (nread == UV_EOF && !c->closing) {
     /* The client will send nothing more but may still be reading (a half-close, as from
-     * `nc -N`): answer what it sent, then close. */
+     * `nc -N`): answer what it sent, a last line without its newline included, then close. */
     uv_read_stop(stream);
+    if (!c->draining && !c->held && proto_reader_feed(&c->reader, "\n", 1) == PROTO_READ_OK)
+      pump(c);
+    if (c->closing)
+      return;
     c->draining = 1;
     if (!c->head && c->out_bytes == 0)
       conn_close(c);

@@ -1102,6 +1102,15 @@ def half_close_still_answered(s):
     s.eq(len(att or b""), 64 * 32 * 4, "the render's attachment arrives whole")
     s.check(c.expect_eof(10), "the server closes once everything is written")
     c.close()
+    # A last request without its newline before the half-close is answered too.
+    c = s.srv.connect(timeout=30)
+    c.send(c.request("server.info", {}, id=7))
+    c.send_raw(mock.dumps(c.request("scene.list", {}, id=8)))
+    c.sock.shutdown(mock.socket.SHUT_WR)
+    got = [c.recv_response(timeout=30)[0].get("id") for _ in range(2)]
+    s.eq(got, [7, 8], "a last line without a newline is answered at the half-close")
+    s.check(c.expect_eof(10), "and then the server closes")
+    c.close()
 
 
 if __name__ == "__main__":
