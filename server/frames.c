@@ -5,7 +5,9 @@
  * the worker render it while the first is encoded. A finished frame is written at once when the
  * socket is idle; otherwise it waits, replacing any older waiting frame, until the connection
  * drains. Nothing else is buffered, so a client that never reads costs at most one frame per
- * subscription.
+ * subscription; and once a frame has waited SUB_STALL_NS, no more are rendered for it until the
+ * socket drains (they count as dropped), so a client that stopped reading costs no renders
+ * either, while one that reads slowly still gets fresh frames.
  */
 #include <stdio.h>
 #include <stdlib.h>
@@ -24,9 +26,10 @@ struct sub {
   cJSON *params; /* The validated subscribe params, reused for every frame. */
   int base64;
   uv_timer_t timer;
-  int refs;        /* The timer handle and the jobs in flight. */
-  int in_flight;   /* Jobs submitted and not yet done, at most SUB_IN_FLIGHT. */
-  char *wait_line; /* A finished frame waiting for the socket. */
+  int refs;            /* The timer handle and the jobs in flight. */
+  int in_flight;       /* Jobs submitted and not yet done, at most SUB_IN_FLIGHT. */
+  char *wait_line;     /* A finished frame waiting for the socket. */
+  uint64_t wait_since; /* now_ns() when it began to wait. */
   size_t wait_len;
   unsigned char *wait_att;
   size_t wait_att_len;
@@ -35,6 +38,8 @@ struct sub {
 
 /* Frames a subscription may have rendering or encoding at once (see above). */
 #define SUB_IN_FLIGHT 2
+/* How long a frame may wait for the socket before the ticks stop rendering (see above). */
+#define SUB_STALL_NS 1000000000ull
 
 static void sub_unref(sub_t *sub) {
   if (--sub->refs > 0)
@@ -188,6 +193,8 @@ static void on_frame_done(job_t *j) {
     sub_unref(sub);
     return;
   }
+  if (!sub->wait_line)
+    sub->wait_since = now_ns();
   drop_waiting(sub);
   sub->wait_line = line;
   sub->wait_len = len;
@@ -204,6 +211,10 @@ static void on_tick(uv_timer_t *t) {
     return;
   if (sub->in_flight >= SUB_IN_FLIGHT) {
     sub->dropped++; /* Earlier frames are still in flight: this one is skipped. */
+    return;
+  }
+  if (sub->wait_line && now_ns() - sub->wait_since > SUB_STALL_NS) {
+    sub->dropped++; /* The client has not read for a while: render again once it does. */
     return;
   }
   server_t *s = sub->srv;

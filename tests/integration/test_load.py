@@ -162,6 +162,12 @@ def slow_subscriber(s):
                                        "fps": 60, "format": "png"})
     sid = r.get("id")
     other = srv.connect(timeout=30)
+
+    def renders():
+        passes = (other.ok("stats", {})[0].get("passes") or {})
+        return (passes.get("objects") or {}).get("count", 0)
+
+    renders0 = renders()
     lats, rss_max, queued_max = [], rss0, 0
     t0 = time.monotonic()
     while time.monotonic() - t0 < 10:
@@ -177,6 +183,7 @@ def slow_subscriber(s):
         rss_max = max(rss_max, srv.rss() or 0)
         time.sleep(0.1)
     elapsed = time.monotonic() - t0
+    stalled_renders = renders() - renders0
     lats.sort()
     growth = rss_max - rss0
     print("    server.info x%d: p50 %.1f ms, max %.1f ms; RSS %.1f MB -> max %.1f MB; "
@@ -189,6 +196,9 @@ def slow_subscriber(s):
             "grew %.1f MB" % (growth / 1e6))
     s.check(queued_max < 16 << 20, "output queued stays bounded (latest frame wins)",
             "%.1f MB" % (queued_max / 1e6))
+    # After a second of waiting, no more frames are rendered for it (about 60 before that).
+    s.check(stalled_renders < 200, "a subscriber that stopped reading costs few renders",
+            "%d renders in %.1f s at 60 fps" % (stalled_renders, elapsed))
     # The subscriber starts reading: it is still connected and has been told about drops.
     max_dropped = 0
     got = 0
