@@ -265,6 +265,11 @@ __kernel void volumes(vfx_frame_t f, vfx_shadow_t sh, __global const float *rest
   float s0 = ox * su[0] + oy * su[1] + oz * su[2];
   float r0 = ox * sv[0] + oy * sv[1] + oz * sv[2];
   float z0 = ox * sh.w[0] + oy * sh.w[1] + oz * sh.w[2];
+  /* Interleaved shadow tests (vfx_shadow_t.interleave): this pixel's fraction of a test's
+   * spacing, in units of a segment, 0 without antialiasing. */
+  int ni = max(sh.interleave, 1);
+  vi cell = (convert_vi(px) % ni) * ni + convert_vi(py) % ni;
+  vf tphase = ((convert_vf(cell) + 0.5f) / (float)(ni * ni) - 0.5f) / VOL_SHADOW_TAPS;
   vf os, or_;
   {
     vf nx = dy * lz - dz * ly, ny = dz * lx - dx * lz, nz = dx * ly - dy * lx;
@@ -334,7 +339,8 @@ __kernel void volumes(vfx_frame_t f, vfx_shadow_t sh, __global const float *rest
         vf ds = dx * su[0] + dy * su[1] + dz * su[2];
         vf dr = dx * sv[0] + dy * sv[1] + dz * sv[2];
         vf dw = dx * sh.w[0] + dy * sh.w[1] + dz * sh.w[2];
-        direct *= vol_shadow(smap, smap_pitch, &sh, t, dt, s0, ds, r0, dr, z0, dw, os, or_);
+        direct *= vol_shadow(smap, smap_pitch, &sh, fma(dt, tphase, t), dt, s0, ds, r0, dr, z0, dw,
+                             os, or_);
       }
       vf w = tr * (1.0f - vol_exp_neg(sig * dt));
       cr += w * fma(lr, direct, ar);

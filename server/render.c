@@ -126,6 +126,7 @@ int renderer_render(renderer_t *r, const render_scene_t *scene, const render_par
   drawn.width = (uint32_t)n * p->width, drawn.height = (uint32_t)n * p->height;
   const render_params_t *dp = &drawn;
   out->antialias = n;
+  r->antialias = n;
   int waves = (p->layers & LAYER_WAVES) && scene->nwaves > 0 && p->aov != AOV_DEPTH;
   if (p->aov == AOV_WAVE_H && !waves) {
     /* Without waves to draw, their summed H is zero everywhere. */

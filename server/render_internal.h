@@ -88,6 +88,7 @@ struct renderer {
   unsigned char *scratch; /* Tone-mapped bytes waiting for the PNG encoder. */
   size_t scratch_cap;
 
+  int antialias;                /* The frame being drawn: render.antialias n, as lowered. */
   cl_kernel resolve8, resolvef; /* render_resolve.c: 8-bit and linear output. */
   cl_mem resolved;              /* The anti-aliased frame, cap_resolved bytes. */
   size_t cap_resolved;

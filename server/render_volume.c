@@ -1147,6 +1147,8 @@ int render_pass_volumes(renderer_t *r, const render_scene_t *scene, unsigned lay
     if ((rc = render_shadow(r, vs, &sh, err, errlen)) != 0)
       goto done;
   }
+  /* After the shadow map's cache key was taken: the map does not depend on it. */
+  sh.interleave = r->antialias > 1 ? r->antialias : 1;
   cl_mem smap = sh.enabled ? vs->smap : vs->data;
   cl_int spitch = sh.enabled ? vs->smap_pitch : 0;
   /* The objects work-group's pixels, or fewer if the device shrank it below one packet. */
