@@ -403,10 +403,61 @@ fail:
  * copy out of cJSON's buffer keeps that true even when cJSON has been given other allocation
  * hooks. Returns NULL when out of memory or when 'msg' is NULL.
  */
+/* Whether cJSON prints the number 'd' so that it reads back as 'd' (see number_exact). */
+static int prints_exactly(double d) {
+  if (!isfinite(d) || (d >= INT_MIN && d <= INT_MAX && d == (double)(int)d))
+    return 1;
+  char text[32];
+  snprintf(text, sizeof(text), "%1.15g", d);
+  return strtod(text, NULL) == d;
+}
+
+/* Whether 'v' or anything under it is a number that cJSON would print changed. */
+static int needs_exact(const cJSON *v) {
+  if (cJSON_IsNumber(v))
+    return !prints_exactly(v->valuedouble);
+  for (const cJSON *c = (cJSON_IsArray(v) || cJSON_IsObject(v)) ? v->child : NULL; c; c = c->next)
+    if (needs_exact(c))
+      return 1;
+  return 0;
+}
+
+/* Replaces each number under 'v' that cJSON would print changed by its exact text. */
+static void make_exact(cJSON *v) {
+  for (cJSON *c = v->child, *next; c; c = next) {
+    next = c->next;
+    if (cJSON_IsNumber(c) && !prints_exactly(c->valuedouble)) {
+      cJSON *exact = number_exact(c->valuedouble);
+      if (exact == NULL)
+        continue;
+      if (!cJSON_IsObject(v))
+        cJSON_ReplaceItemViaPointer(v, c, exact);
+      else if (c->string != NULL && cJSON_GetObjectItemCaseSensitive(v, c->string) == c)
+        cJSON_ReplaceItemInObjectCaseSensitive(v, c->string, exact); /* Keeps the key. */
+      else
+        cJSON_Delete(exact); /* A repeated key: the member is left as cJSON prints it. */
+    } else if (cJSON_IsArray(c) || cJSON_IsObject(c)) {
+      make_exact(c);
+    }
+  }
+}
+
 char *proto_print_line(const cJSON *msg, size_t *len) {
   if (msg == NULL)
     return NULL;
+  /* Numbers are printed so that they read back exactly: an echoed 't', a document's
+   * 0.30000000000000004 or a seed of 2^53 - 1 come back as sent. Only a message that holds
+   * such a number is copied for it. */
+  cJSON *copy = NULL;
+  if (needs_exact(msg)) {
+    copy = cJSON_Duplicate(msg, 1);
+    if (copy == NULL)
+      return NULL;
+    make_exact(copy);
+    msg = copy;
+  }
   char *text = cJSON_PrintUnformatted(msg);
+  cJSON_Delete(copy);
   if (text == NULL)
     return NULL;
   size_t n = strlen(text);

@@ -236,6 +236,14 @@ def scene_set(s):
     s.eq(cam.get("fov_y"), 47.5, "merge patch sets camera.fov_y")
     expect_error(s, c, "scene.set", {"scene": "s1", "path": "", "value": {}}, E_PARAMS, "path",
                  "an empty path names 'path'")
+    # Numbers are stored and given back exactly.
+    c.ok("scene.set", {"scene": "s1", "patch": {"render": {"exposure": 0.30000000000000004},
+                                                "sim": {"seed": 9007199254740991}}})
+    s.eq(c.ok("scene.get", {"scene": "s1", "path": "render.exposure"})[0], 0.30000000000000004,
+         "an exposure of 0.30000000000000004 reads back exactly")
+    s.eq(c.ok("scene.get", {"scene": "s1", "path": "sim.seed"})[0], 9007199254740991,
+         "a seed of 2^53 - 1 reads back exactly")
+    c.ok("scene.set", {"scene": "s1", "patch": {"render": {"exposure": 0}, "sim": {"seed": 0}}})
     resp = expect_error(s, c, "scene.create", {"name": "s9", "preset": "nope"}, E_NOT_FOUND,
                         "preset", "an unknown preset")
     s.check("/" not in (resp.get("error") or {}).get("message", "/"),
@@ -515,6 +523,9 @@ def render_beauty(s):
     s.eq(rt.get("t"), t, "render echoes t")
     rt, _ = c.ok("render", {"scene": "r1", "width": 8, "height": 8, "t": 12345.5})
     s.eq(rt.get("t"), 12345.5, "render echoes a numeric t")
+    exact = [0.30000000000000004, 9007199254740991, 1796182484.5305502, {"k": 1.0000000000000002}]
+    rt, _ = c.ok("render", {"scene": "r1", "width": 8, "height": 8, "t": exact})
+    s.eq(rt.get("t"), exact, "render echoes numbers exactly, to the last bit")
     for bad, code in (({"width": 0}, E_PARAMS), ({"width": 5000}, E_LIMIT),
                       ({"scene": "nope"}, E_NOT_FOUND)):
         resp = expect_error(s, c, "render", dict({"scene": "r1", "width": 8, "height": 8,

@@ -995,6 +995,15 @@ static void test_builders(void) {
 
   CHECK(proto_print_line(NULL, NULL) == NULL);
 
+  /* Every number prints so that it reads back exactly, at any depth: cJSON alone gives 0.3 and
+   * 9.00719925474099e+15 for these; 2.5 and 1e300 print as cJSON prints them. */
+  cJSON *nums = cJSON_Parse("{\"t\":[0.30000000000000004,{\"s\":9007199254740991}],"
+                            "\"a\":1796182484.5305502,\"b\":2.5,\"c\":1e300,\"d\":-3}");
+  CHECK(nums != NULL);
+  print_into(nums, text, sizeof(text));
+  CHECK_STR(text, "{\"t\":[0.30000000000000004,{\"s\":9007199254740991}],"
+                  "\"a\":1796182484.5305502,\"b\":2.5,\"c\":1e+300,\"d\":-3}");
+
   /* A request built here survives the trip through print, reader, parse and check. */
   params = cJSON_CreateObject();
   cJSON_AddStringToObject(params, "scene", "main \xc3\xa9");
