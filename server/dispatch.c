@@ -239,6 +239,9 @@ void call_result_bytes(call_t *call, cJSON *result, unsigned char *bytes, size_t
 
 void call_result_made(call_t *call, cJSON *result, call_bytes_fn make, void (*drop)(void *),
                       void *ctx, size_t size, const char *format, int base64) {
+  /* Counted towards the connection's output now, so that the requests behind wait while
+   * the answers queued pass the limit (net.c). */
+  conn_promise(call, (base64 ? proto_b64_encoded_len(size) : size) + 4096);
   made_job_t *j = size >= CALL_BYTES_OFF_LOOP ? calloc(1, sizeof *j) : NULL;
   if (j) {
     *j = (made_job_t){.call = call,
