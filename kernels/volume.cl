@@ -369,10 +369,11 @@ __kernel void volumes(vfx_frame_t f, vfx_shadow_t sh, __global const float *rest
  * With render.volume_resolution below full, the volumes kernel runs on a frame 'd' times
  * smaller each way, over a buffer that starts transparent (so it receives the volumes' light
  * and 1 - their transmittance), and volume_up composites that over the full frame. Low pixel
- * (i, j) stands for full pixel (d i + d / 2, d j + d / 2): its ray is that pixel's, and so is
- * its opaque depth, so every low pixel is exactly what the full pass gives at one full pixel,
- * and a full pixel beside an object's edge finds low pixels of either side among the four
- * around it.
+ * (i, j) stands for full pixel (d i, d j): its ray is that pixel's, and so is its opaque depth
+ * (the last column and row, one past the frame's edge, take the edge pixels' depths), so every
+ * low pixel is exactly what the full pass gives at one full pixel, every full pixel lies
+ * between four low ones (the frame's edges included), and a full pixel beside an object's edge
+ * finds low pixels of either side among them.
  *
  * volume_depth_down: the opaque depth of low pixel (global x, global y), that of its full pixel
  * (clamped to the frame).
@@ -380,8 +381,7 @@ __kernel void volumes(vfx_frame_t f, vfx_shadow_t sh, __global const float *rest
 __kernel void volume_depth_down(__global const float *restrict depth, int pitch, int width,
                                 int height, int d, __global float *restrict low, int low_pitch) {
   int x = get_global_id(0), y = get_global_id(1);
-  low[y * low_pitch + x] =
-      depth[min(y * d + d / 2, height - 1) * pitch + min(x * d + d / 2, width - 1)];
+  low[y * low_pitch + x] = depth[min(y * d, height - 1) * pitch + min(x * d, width - 1)];
 }
 
 /*
@@ -399,17 +399,17 @@ __kernel void volume_up(__global const float *restrict low, int low_pitch, int l
                         __global float *restrict linear) {
   int x0 = VOL_UP_PACKET * get_global_id(0), y = get_global_id(1);
   float inv = 1.0f / d;
-  /* Low coordinates, in which low pixel i is at i (it stands for full pixel d i + d / 2); they
-   * are above -1, so truncation of one more is floor. */
-  vf u = ((float)x0 + VOL_LANES - 0.5f - (float)(d / 2)) * inv;
-  float v = ((float)y - (float)(d / 2)) * inv;
-  vi i0 = clamp(convert_vi(u + 1.0f) - 1, 0, low_w - 1), i1 = min(i0 + 1, low_w - 1);
-  int j0 = clamp((int)(v + 1.0f) - 1, 0, low_h - 1), j1 = min(j0 + 1, low_h - 1);
+  /* Low coordinates, in which low pixel i is at i (it stands for full pixel d i); they are not
+   * negative, so truncation is floor. */
+  vf u = ((float)x0 + VOL_LANES - 0.5f) * inv;
+  float v = (float)y * inv;
+  vi i0 = min(convert_vi(u), low_w - 1), i1 = min(i0 + 1, low_w - 1);
+  int j0 = min((int)v, low_h - 1), j1 = min(j0 + 1, low_h - 1);
   vf fx = clamp(u - convert_vf(i0), 0.0f, 1.0f);
   float fy = clamp(v - (float)j0, 0.0f, 1.0f);
   /* The four low pixels around each lane: depth, then R, G, B and A (1 - transmittance). */
   vf q00[5], q10[5], q01[5], q11[5];
-  int first = x0 / d - 1, span = d == 2 ? 9 : 5;
+  int first = x0 / d, span = d == 2 ? 8 : 4;
   if ((d == 2 || d == 4) && first >= 0 && first + span <= low_w - 1) {
     /* No lane is clamped: the packet's low pixels are first .. first + span of rows j0 and j1,
      * loaded whole and handed to the lanes by fixed swizzles, instead of twenty gathers. */
@@ -421,8 +421,8 @@ __kernel void volume_up(__global const float *restrict low, int low_pitch, int l
       w[0] = vload16(0, low_depth + row);
       vol_split(q, &w[1], &w[2], &w[3], &w[4]);
       for (int k = 0; k < 5; k++) {
-        vf at0 = d == 2 ? w[k].s0112233445566778 : w[k].s0011112222333344;
-        vf at1 = d == 2 ? w[k].s1223344556677889 : w[k].s1122223333444455;
+        vf at0 = d == 2 ? w[k].s0011223344556677 : w[k].s0000111122223333;
+        vf at1 = d == 2 ? w[k].s1122334455667788 : w[k].s1111222233334444;
         if (r)
           q01[k] = at0, q11[k] = at1;
         else

@@ -920,7 +920,8 @@ static cl_int run_low_volumes(renderer_t *r, int d, const vfx_shadow_t *sh, cl_i
                               cl_int spitch, const size_t local[2], char *err, size_t errlen) {
   struct vol_state *vs = r->vol;
   vfx_frame_t f = r->frame;
-  cl_int lw = (f.width + d - 1) / d, lh = (f.height + d - 1) / d;
+  /* Low pixel i stands for full pixel d i, up to one past the frame's last (kernels/volume.cl). */
+  cl_int lw = (f.width - 1) / d + 2, lh = (f.height - 1) / d + 2;
   size_t lp = round_up((size_t)lw, local[0] * VOL_PACKET_W),
          lr = round_up((size_t)lh, local[1] * VOL_PACKET_H);
   /* A row's worth of slack: volume_up loads sixteen low pixels from a packet's first. */
@@ -956,12 +957,12 @@ static cl_int run_low_volumes(renderer_t *r, int d, const vfx_shadow_t *sh, cl_i
   if (cr == CL_SUCCESS)
     cr = clEnqueueFillBuffer(r->dev.queue, vs->low_linear, &clear, sizeof clear, 0,
                              lpix * 4 * sizeof(float), 0, NULL, NULL);
-  /* Pixel (x, y) of the low frame looks through the centre of full pixel (d x + d / 2,
-   * d y + d / 2), (d x + d / 2 + 0.5, ...) of the image plane, where the kernel puts it at
-   * (x + 0.5) d of steps d times longer from a base moved by half a step. */
+  /* Pixel (x, y) of the low frame looks through the centre of full pixel (d x, d y),
+   * (d x + 0.5, d y + 0.5) of the image plane, where the kernel puts it at (x + 0.5) d of steps
+   * d times longer from a base moved by (1 - d) / 2 steps. */
   f.width = lw, f.height = lh, f.pitch = clp;
   for (int i = 0; i < 3; i++) {
-    f.base[i] += (float)(d / 2 + 0.5 - 0.5 * d) * (f.step_x[i] + f.step_y[i]);
+    f.base[i] += (float)(0.5 - 0.5 * d) * (f.step_x[i] + f.step_y[i]);
     f.step_x[i] *= (float)d, f.step_y[i] *= (float)d;
   }
   if (cr == CL_SUCCESS)

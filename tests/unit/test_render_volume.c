@@ -265,15 +265,15 @@ static void test_low_resolution(void) {
            "beside the box's edge (%d pixels)\n",
            div, worst, edge, nedge);
     /* The documented rule, applied to the exact values of the low pixels: each low pixel (i, j)
-     * is full pixel (d i + d/2, d j + d/2); a pixel blends the transmittance of the four low
-     * pixels around it bilinearly over those whose depth is within 5% of its own (weights
-     * renormalised), else takes the nearest in depth. Pixels where the 5% test or the box's
-     * edge is too close to call in float are left out. */
-    int lw = w / div, lh = h / div, checked = 0;
+     * is full pixel (d i, d j), up to one past the frame's edge (clamped to it); a pixel blends
+     * the transmittance of the four low pixels around it bilinearly over those whose depth is
+     * within 5% of its own (weights renormalised), else takes the nearest in depth. Pixels where
+     * the 5% test or the box's edge is too close to call in float are left out. */
+    int lw = (w - 1) / div + 2, lh = (h - 1) / div + 2, checked = 0;
     double rule_worst = 0;
     for (int y = 0; img && y < h; y++)
       for (int x = 0; x < w; x++) {
-        double u = (x - div / 2) / (double)div, vv = (y - div / 2) / (double)div;
+        double u = x / (double)div, vv = y / (double)div;
         int i0 = (int)fmin(fmax(floor(u), 0), lw - 1), j0 = (int)fmin(fmax(floor(vv), 0), lh - 1);
         int ii[2] = {i0, i0 + 1 < lw ? i0 + 1 : lw - 1},
             jj[2] = {j0, j0 + 1 < lh ? j0 + 1 : lh - 1};
@@ -282,7 +282,7 @@ static void test_low_resolution(void) {
         int doubtful = grazes[y * w + x];
         for (int b = 0; b < 2; b++)
           for (int a = 0; a < 2; a++) {
-            int lx = div * ii[a] + div / 2, ly = div * jj[b] + div / 2;
+            int lx = div * ii[a], ly = div * jj[b];
             int n = (ly < h ? ly : h - 1) * w + (lx < w ? lx : w - 1);
             double dz = fabs(z[n] - zi), wgt = (a ? fx : 1 - fx) * (b ? fy : 1 - fy);
             doubtful |= grazes[n] || fabs(dz - tol) < 1e-3 * zi;
