@@ -139,9 +139,15 @@ static int rpc(const cli_t *cli, const char *method, cJSON *params, cJSON **resu
   return rc == 0 ? 0 : report(cli, rc, &e);
 }
 
-/* Prints scalar 'v' (or an empty container) compactly; without its siblings. */
+/* Prints scalar 'v' (or an empty container) compactly; without its siblings. Numbers get the
+ * digits that read back exactly (proto_print_line), not cJSON's fifteen. */
 static void print_scalar(const cJSON *v) {
-  char *s = cJSON_PrintUnformatted(v);
+  cJSON *alone = cJSON_Duplicate(v, 1);
+  size_t len = 0;
+  char *s = alone ? proto_print_line(alone, &len) : NULL;
+  cJSON_Delete(alone);
+  if (s != NULL && len > 0)
+    s[len - 1] = '\0'; /* Without the line's newline. */
   fputs(s != NULL ? s : "null", stdout);
   free(s);
 }

@@ -450,10 +450,11 @@ char *proto_print_line(const cJSON *msg, size_t *len) {
    * such a number is copied for it. */
   cJSON *copy = NULL;
   if (needs_exact(msg)) {
-    copy = cJSON_Duplicate(msg, 1);
+    copy = cJSON_IsNumber(msg) ? number_exact(msg->valuedouble) : cJSON_Duplicate(msg, 1);
     if (copy == NULL)
       return NULL;
-    make_exact(copy);
+    if (!cJSON_IsRaw(copy))
+      make_exact(copy);
     msg = copy;
   }
   char *text = cJSON_PrintUnformatted(msg);

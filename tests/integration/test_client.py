@@ -131,6 +131,12 @@ def test_cli(cli, work):
     check(isinstance(fov, (int, float)), "get camera.fov_y printed %r" % fov)
     cli.run("set", "camera.fov_y=50")
     check(cli.json("get", "camera.fov_y") == 50, "fov_y is not 50 after set")
+    # Numbers go both ways with every digit they need.
+    cli.run("set", "sim.seed=9007199254740991", "render.exposure=0.30000000000000004")
+    check(cli.run("get", "sim.seed")[1].strip() == "9007199254740991",
+          "get sim.seed printed %r" % cli.run("get", "sim.seed")[1])
+    check(cli.json("get", "render.exposure") == 0.30000000000000004, "exposure lost digits")
+    cli.run("set", "sim.seed=0", "render.exposure=0")
 
     # A bad value fails, names the path, and changes nothing, not even the good assignment
     # beside it in the same merge patch.

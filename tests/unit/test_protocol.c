@@ -1003,6 +1003,8 @@ static void test_builders(void) {
   print_into(nums, text, sizeof(text));
   CHECK_STR(text, "{\"t\":[0.30000000000000004,{\"s\":9007199254740991}],"
                   "\"a\":1796182484.5305502,\"b\":2.5,\"c\":1e+300,\"d\":-3}");
+  print_into(cJSON_CreateNumber(9007199254740991.0), text, sizeof(text));
+  CHECK_STR(text, "9007199254740991"); /* A number alone, as the CLI prints one. */
 
   /* A request built here survives the trip through print, reader, parse and check. */
   params = cJSON_CreateObject();
