@@ -166,6 +166,7 @@ static void on_render_done(job_t *j) {
   render_call_t *rc = j->ctx;
   call_t *call = rc->call;
   server_t *s = call->srv;
+  call->conn->renders--; /* Reading resumes, if it waited for this, when the answer is written. */
   render_job_stats(s, j);
   if (j->code != 0) {
     call_error(call, j->code, j->code == PROTO_E_INVALID_PARAMS ? "format" : NULL, "%s: %s",
@@ -242,6 +243,7 @@ static void render_m(call_t *call) {
     return;
   }
   conn_promise(call, bound);
+  call->conn->renders++;
 }
 
 static const sch_field_t render_params[] = {

@@ -78,9 +78,11 @@ void conn_close(conn_t *c) {
   LOG(LOG_DEBUG, "net", "connection %llu closed", (unsigned long long)c->id);
 }
 
-/* Whether the output written and promised passes the limit: no further request is read. */
+/* Whether the output written and promised passes the limit, or the connection has its share
+ * of the render queue: no further request is read. */
 static int conn_full(const conn_t *c) {
-  return c->out_bytes + c->promised > c->srv->cfg.limits.output_bytes;
+  return c->out_bytes + c->promised > c->srv->cfg.limits.output_bytes ||
+         c->renders >= CONN_RENDERS_MAX;
 }
 
 static void pump(conn_t *c);

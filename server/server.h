@@ -64,7 +64,9 @@ struct conn {
   reply_t *head, *tail; /* Replies not yet written. */
   size_t out_bytes;     /* Bytes handed to libuv and not yet written to the socket. */
   size_t promised;      /* Bytes of answers queued (render jobs) and not yet handed to libuv. */
-  int out_paused;       /* Reading stopped because out_bytes + promised passed the limit. */
+  int out_paused;       /* Reading stopped: out_bytes + promised over the limit, or 'renders'
+                           at CONN_RENDERS_MAX. */
+  int renders;          /* Its render requests queued or running on the worker. */
   int refs;             /* Open handles + calls in flight + subscriptions. */
   int closing;          /* No further reads; writes are dropped. */
   int draining;         /* Close once every reply is written (shutdown, oversize line). */
@@ -130,6 +132,10 @@ struct server {
   stats_t stats;
   int stopping;
 };
+
+/* Render requests of one connection that may wait in the shared render queue at once; its
+ * further requests wait unread, so one client's pipeline leaves room for the others. */
+#define CONN_RENDERS_MAX 16
 
 /* net.c */
 int net_listen(server_t *s);

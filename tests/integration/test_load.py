@@ -298,6 +298,32 @@ def output_backpressure(s):
                 short(mem))
 
 
+@T
+def render_queue_share(s):
+    """One connection's render requests take at most 16 places in the shared render queue; the
+    rest wait unread. A client that pipelines 80 renders therefore has only about 16 of them
+    rendered when another client's render, sent after them, is answered (FIFO would make it
+    80), and still gets all 80, in order."""
+    with s.srv.connect(timeout=120) as a, s.srv.connect(timeout=120) as b, \
+            s.srv.connect(timeout=120) as watcher:
+        def renders():
+            passes = watcher.ok("stats", {})[0].get("passes") or {}
+            return (passes.get("objects") or {}).get("count", 0)
+
+        a.ok("scene.create", {"name": "share", "preset": "demo"})
+        frame = {"scene": "share", "width": 192, "height": 192, "format": "png"}
+        base = renders()
+        a.send_raw(b"".join((mock.dumps(a.request("render", frame, id=i)) + "\n").encode()
+                            for i in range(80)))
+        time.sleep(0.05)
+        b.ok("render", frame, timeout=120)
+        before_b = renders() - base - 1
+        s.check(before_b <= 30, "another client's render waited for few of the pipelined ones",
+                "%d of the 80 were rendered by then" % before_b)
+        ids = [a.recv_response(timeout=120)[0].get("id") for _ in range(80)]
+        s.eq(ids, list(range(80)), "and the pipelining client still gets all 80, in order")
+
+
 def _limit_server(s, n):
     """Starts a server with a connection limit of 'n' by a flag if --help names one, else by
     a config file in a few plausible formats. Returns a started Server or None."""
