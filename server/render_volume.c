@@ -359,7 +359,6 @@ PAR_CLONES static void voxel_row(float *restrict out, const float *restrict here
       out[k * sc] = exp_neg(-half * here[k * sc]);
     return;
   }
-  (void)nc;
   const uint32_t *restrict c0 = w->uc0, *restrict c1 = w->uc1;
   const float *restrict w0 = w->ucw0, *restrict w1 = w->ucw1;
   float gb = 1 - fb, gc = 1 - fc;
