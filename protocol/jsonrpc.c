@@ -422,24 +422,29 @@ static int needs_exact(const cJSON *v) {
   return 0;
 }
 
-/* Replaces each number under 'v' that cJSON would print changed by its exact text. */
-static void make_exact(cJSON *v) {
-  for (cJSON *c = v->child, *next; c; c = next) {
-    next = c->next;
-    if (cJSON_IsNumber(c) && !prints_exactly(c->valuedouble)) {
-      cJSON *exact = number_exact(c->valuedouble);
-      if (exact == NULL)
-        continue;
-      if (!cJSON_IsObject(v))
-        cJSON_ReplaceItemViaPointer(v, c, exact);
-      else if (c->string != NULL && cJSON_GetObjectItemCaseSensitive(v, c->string) == c)
-        cJSON_ReplaceItemInObjectCaseSensitive(v, c->string, exact); /* Keeps the key. */
-      else
-        cJSON_Delete(exact); /* A repeated key: the member is left as cJSON prints it. */
-    } else if (cJSON_IsArray(c) || cJSON_IsObject(c)) {
-      make_exact(c);
+/*
+ * A copy of 'v' to print, whose numbers print exactly (number_exact). Strings are referenced,
+ * not copied, so that a message carrying megabytes of base64 costs only its small nodes.
+ * NULL when out of memory.
+ */
+static cJSON *exact_copy(const cJSON *v) {
+  if (cJSON_IsNumber(v))
+    return number_exact(v->valuedouble);
+  if (cJSON_IsString(v))
+    return cJSON_CreateStringReference(v->valuestring);
+  if (!cJSON_IsArray(v) && !cJSON_IsObject(v))
+    return cJSON_Duplicate(v, 0);
+  cJSON *out = cJSON_IsArray(v) ? cJSON_CreateArray() : cJSON_CreateObject();
+  for (const cJSON *c = v->child; out != NULL && c != NULL; c = c->next) {
+    cJSON *item = exact_copy(c);
+    if (item == NULL || (cJSON_IsArray(v) ? !cJSON_AddItemToArray(out, item)
+                                          : !cJSON_AddItemToObject(out, c->string, item))) {
+      cJSON_Delete(item);
+      cJSON_Delete(out);
+      out = NULL;
     }
   }
+  return out;
 }
 
 char *proto_print_line(const cJSON *msg, size_t *len) {
@@ -447,14 +452,11 @@ char *proto_print_line(const cJSON *msg, size_t *len) {
     return NULL;
   /* Numbers are printed so that they read back exactly: an echoed 't', a document's
    * 0.30000000000000004 or a seed of 2^53 - 1 come back as sent. Only a message that holds
-   * such a number is copied for it. */
+   * such a number is copied for it, its strings by reference. */
   cJSON *copy = NULL;
   if (needs_exact(msg)) {
-    copy = cJSON_IsNumber(msg) ? number_exact(msg->valuedouble) : cJSON_Duplicate(msg, 1);
-    if (copy == NULL)
+    if ((copy = exact_copy(msg)) == NULL)
       return NULL;
-    if (!cJSON_IsRaw(copy))
-      make_exact(copy);
     msg = copy;
   }
   char *text = cJSON_PrintUnformatted(msg);

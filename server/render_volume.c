@@ -399,7 +399,8 @@ static void *sweep_rows(void *arg) {
   for (int k = 0; k < (int)n[a]; k++) {
     int s = w->dir > 0 ? (int)n[a] - 1 - k : k;
     const float *slice = w->sg + s * stride[a];
-    const float *before = slice + w->dir * (ptrdiff_t)stride[a]; /* Towards the light. */
+    /* The slice before, towards the light; the first slice has none. */
+    const float *before = k ? slice + w->dir * (ptrdiff_t)stride[a] : NULL;
     const float *in = w->tau[(k + 1) & 1];
     float *out = w->tau[k & 1];
     double ob = k * w->db, oc = k * w->dc;
@@ -410,9 +411,10 @@ static void *sweep_rows(void *arg) {
     float fb = (float)(qb - fb0), fc = (float)(qc - fc0);
     for (int ib = p->v0; ib < p->v1; ib++) {
       size_t at = s * stride[a] + ib * stride[b];
-      const float *t0 = k ? in + (size_t)(ib + fb0) * w->wc + fc0 : NULL;
+      const float *t0 = before ? in + (size_t)(ib + fb0) * w->wc + fc0 : NULL;
       voxel_row(w->lg + at, w->sg + at, stride[c], n[c], t0, t0 ? t0 + w->wc : NULL, fb, fc,
-                before + w->ub0[ib], before + w->ub1[ib], w->ubw0[ib], w->ubw1[ib], w, w->half);
+                before ? before + w->ub0[ib] : NULL, before ? before + w->ub1[ib] : NULL,
+                w->ubw0[ib], w->ubw1[ib], w, w->half);
     }
     /* The lattice's rays where they meet this slice, into the other buffer: the voxels above, on
      * every thread, read the slice before's. */
