@@ -87,17 +87,19 @@ static inline vf vol_exp_neg(vf x) {
  * n[2]) at grid coordinates (x, y, z), in which voxel i's centre is at i; coordinates are
  * clamped to the centres of the edge voxels, so the edge values extend to the box's faces.
  */
-static inline void vol_trilinear(__global const float4 *restrict g, int nx, int ny, int nz, vf x,
+static inline void vol_trilinear(__global const float2 *restrict g, int nx, int ny, int nz, vf x,
                                  vf y, vf z, vf *d, vf *l) {
   /* Clamped first, the coordinates are non-negative, so conversion (which truncates) is floor:
    * the builtin floor costs a dozen instructions here. fmax also turns a NaN into 0. */
   x = fmin(fmax(x, 0.0f), (float)(nx - 1));
   y = fmin(fmax(y, 0.0f), (float)(ny - 1));
   z = fmin(fmax(z, 0.0f), (float)(nz - 1));
-  /* The lower corner of the voxel pair along y (and z) holding the point: at the last centre
-   * the pair below it, with weight 1 on the upper; a grid one voxel thick pairs it with itself. */
+  /* The lower corner of the voxel pair along each axis holding the point: at the last centre
+   * the pair below it, with weight 1 on the upper. A grid one voxel thick along y or z pairs it
+   * with itself; along x with the next voxel in memory, at weight 0 (the buffer holds one
+   * voxel more than the grids, finite). */
   int y1 = ny > 1 ? nx : 0, z1 = nz > 1 ? nx * ny : 0;
-  vi ix = convert_vi(x), iy = min(convert_vi(y), max(ny - 2, 0)),
+  vi ix = min(convert_vi(x), max(nx - 2, 0)), iy = min(convert_vi(y), max(ny - 2, 0)),
      iz = min(convert_vi(z), max(nz - 2, 0));
   vf fx = x - convert_vf(ix), fy = y - convert_vf(iy), fz = z - convert_vf(iz);
   vi b = ix + nx * (iy + ny * iz);
@@ -129,15 +131,18 @@ static inline void vol_trilinear(__global const float4 *restrict g, int nx, int 
     vi in = b == v0;
     left &= ~in;
 #endif
-    float4 q00 = g[v0], q10 = g[v0 + y1], q01 = g[v0 + z1], q11 = g[v0 + y1 + z1];
-    d00 = select(d00, mix((vf)q00.x, (vf)q00.y, fx), in);
-    l00 = select(l00, mix((vf)q00.z, (vf)q00.w, fx), in);
-    d10 = select(d10, mix((vf)q10.x, (vf)q10.y, fx), in);
-    l10 = select(l10, mix((vf)q10.z, (vf)q10.w, fx), in);
-    d01 = select(d01, mix((vf)q01.x, (vf)q01.y, fx), in);
-    l01 = select(l01, mix((vf)q01.z, (vf)q01.w, fx), in);
-    d11 = select(d11, mix((vf)q11.x, (vf)q11.y, fx), in);
-    l11 = select(l11, mix((vf)q11.z, (vf)q11.w, fx), in);
+    /* (d[i], T[i], d[i + 1], T[i + 1]) at each of the four corners' x-pairs. */
+    __global const float *c = (__global const float *)(g + v0);
+    float4 q00 = vload4(0, c), q10 = vload4(0, c + 2 * y1), q01 = vload4(0, c + 2 * z1),
+           q11 = vload4(0, c + 2 * (y1 + z1));
+    d00 = select(d00, mix((vf)q00.x, (vf)q00.z, fx), in);
+    l00 = select(l00, mix((vf)q00.y, (vf)q00.w, fx), in);
+    d10 = select(d10, mix((vf)q10.x, (vf)q10.z, fx), in);
+    l10 = select(l10, mix((vf)q10.y, (vf)q10.w, fx), in);
+    d01 = select(d01, mix((vf)q01.x, (vf)q01.z, fx), in);
+    l01 = select(l01, mix((vf)q01.y, (vf)q01.w, fx), in);
+    d11 = select(d11, mix((vf)q11.x, (vf)q11.z, fx), in);
+    l11 = select(l11, mix((vf)q11.y, (vf)q11.w, fx), in);
 #ifdef __AVX512DQ__
     if (!left)
       break;
@@ -237,7 +242,7 @@ static inline void vol_join(vf r, vf g, vf b, vf a, float16 q[4]) {
  * at each sample, and whatever depends only on the eye stays scalar.
  */
 __kernel void volumes(vfx_frame_t f, vfx_shadow_t sh, __global const float *restrict vols, int nvol,
-                      __global const float4 *restrict data, __global const float *restrict smap,
+                      __global const float2 *restrict data, __global const float *restrict smap,
                       int smap_pitch, __global const float *restrict depth,
                       __global float *restrict linear) {
   int x0 = VOL_PACKET_W * get_global_id(0), y0 = VOL_PACKET_H * get_global_id(1);
@@ -311,7 +316,7 @@ __kernel void volumes(vfx_frame_t f, vfx_shadow_t sh, __global const float *rest
     t0 = select((vf)0.0f, t0, act);
 
     int gx = as_int(rec[VOL_DIMS]), gy = as_int(rec[VOL_DIMS + 1]), gz = as_int(rec[VOL_DIMS + 2]);
-    __global const float4 *grid = data + as_int(rec[VOL_OFF]);
+    __global const float2 *grid = data + as_int(rec[VOL_OFF]);
     /* Grid coordinates of the eye, in which voxel i's centre is at i. */
     float ix = rec[VOL_INV], iy = rec[VOL_INV + 1], iz = rec[VOL_INV + 2];
     float g0x = (ex - rec[VOL_BMIN]) * ix - 0.5f, g0y = (ey - rec[VOL_BMIN + 1]) * iy - 0.5f,

@@ -4,10 +4,10 @@
  * the packet width. Valid OpenCL C and valid C11, like common.h.
  *
  * A volume reaches the kernel as VOL_STRIDE floats, and its grid as dims voxels (x fastest) of a
- * float4 buffer: voxel i holds (d[i], d[i + x], T[i], T[i + x]), the density d and the light
- * transmittance T (from the voxel centre towards the light through the volume) of the voxel and
- * of its neighbour along x (itself at the last x), so that the sixteen values a trilinear lookup
- * of both needs lie in four 16-byte runs (one cache line each) instead of sixteen places. A grid
+ * float2 buffer, one voxel more than the grid (zero): voxel i holds (d[i], T[i]), the density d
+ * and the light transmittance T (from the voxel centre towards the light through the volume),
+ * so that the x-pair (d[i], T[i], d[i + 1], T[i + 1]) is one 16-byte load and the sixteen values
+ * a trilinear lookup of both needs lie in four 16-byte runs instead of sixteen places. A grid
  * spans the volume's box, voxel centres at box_min + (i + 0.5) * cell, and is interpolated
  * trilinearly with the edge voxels extended to the faces. The kernel samples only inside the
  * 'tight' box, the part of the volume where the density can be non-zero (empty-space skipping).
@@ -20,7 +20,7 @@
 #define VOL_BMIN 6    /* The grid's box (the volume's bounds). */
 #define VOL_INV 9     /* Grid voxels per world unit, per axis. */
 #define VOL_DIMS 12   /* Grid dims, int bits. */
-#define VOL_OFF 15    /* Offset of the grid's first voxel in the data buffer (float4s), int bits. */
+#define VOL_OFF 15    /* Offset of the grid's first voxel in the data buffer (float2s), int bits. */
 #define VOL_SIGMA 16  /* Extinction per world unit at density 1. */
 #define VOL_ALBEDO 17 /* Single-scattering albedo, linear RGB. */
 #define VOL_SAMPLES 20 /* Samples per ray, int bits. */

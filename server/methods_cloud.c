@@ -19,6 +19,7 @@
 #include "dispatch.h"
 #include "frames.h"
 #include "log.h"
+#include "reclaim.h"
 #include "worker.h"
 
 typedef struct cloud_job {
@@ -72,8 +73,9 @@ static void cloud_run(renderer_t *r, job_t *j) {
       cj->keep > 0 && frames > 0 && shown && memcmp(shown->dims, src->n, sizeof src->n) == 0;
   unsigned counted = blend ? frames_counted(cj->keep, frames) : 1;
   cloud_cells_t *buf[2] = {NULL, NULL}, *cur = src;
-  density_grid_t *d = density_grid_new(src->n);
-  float *next = blend ? malloc(n * sizeof *next) : NULL;
+  /* Every density of d is written below: no zeroing. */
+  density_grid_t *d = density_grid_alloc(src->n);
+  float *next = blend ? reclaim_alloc(n * sizeof *next) : NULL;
   if (!d || (blend && !next))
     goto oom;
   if (cj->steps > 0) {
@@ -82,9 +84,10 @@ static void cloud_run(renderer_t *r, job_t *j) {
     if (!buf[0] || (cj->steps > 1 && !buf[1]))
       goto oom;
   }
-  if (blend)
-    memcpy(d->data, shown->data, n * sizeof *d->data);
-  /* The step the density in d->data shows; the wind carries it along with the cells. */
+  /* With blending, each density computed is blended with the one before, 'prev' (first the one
+   * shown, read in place), into d->data and 'next' by turns. */
+  const float *prev = blend ? shown->data : NULL;
+  /* The step the density in 'prev' shows; the wind carries it along with the cells. */
   uint64_t shown_step = src->step;
   unsigned taken = 0;
   for (unsigned f = 0; f < frames; f++) {
@@ -99,16 +102,15 @@ static void cloud_run(renderer_t *r, job_t *j) {
     unsigned left = frames - f;
     if (!still && left > counted)
       continue;
-    float *target = blend ? next : d->data;
+    float *target = blend && prev == d->data ? next : d->data;
     if (cloud_density(cur, cj->cfg.radius, target) != 0)
       goto oom;
     if (blend) {
-      cloud_density_shift(d->data, src->n,
-                          cloud_wind_shift(&cj->cfg.params, shown_step, cur->step));
+      cloud_blend_shifted(target, prev, src->n,
+                          cloud_wind_shift(&cj->cfg.params, shown_step, cur->step),
+                          still ? powf(cj->keep, (float)left) : cj->keep);
       shown_step = cur->step;
-      cloud_blend(next, d->data, n, still ? powf(cj->keep, (float)left) : cj->keep);
-      next = d->data;
-      d->data = target;
+      prev = target;
     }
     if (still) {
       cur->step += cj->steps - taken; /* The rest change nothing: counted only. */
@@ -117,16 +119,23 @@ static void cloud_run(renderer_t *r, job_t *j) {
   }
   if (frames == 0 && cloud_density(cur, cj->cfg.radius, d->data) != 0)
     goto oom;
+  if (blend && prev == next) { /* The last blend went to 'next': it is the density. */
+    float *last = next;
+    next = d->data;
+    d->data = last;
+  } else if (blend && prev == shown->data) { /* Nothing was computed (not reached). */
+    memcpy(d->data, prev, n * sizeof *d->data);
+  }
   cj->res->cells = cloud_cells_ref(cur);
   cj->res->density = d;
   cj->res->ok = 1;
-  free(next);
+  reclaim_free(next, n * sizeof *next);
   cloud_cells_unref(buf[0]);
   cloud_cells_unref(buf[1]);
   return;
 oom:
   density_grid_unref(d);
-  free(next);
+  reclaim_free(next, n * sizeof *next);
   cloud_cells_unref(buf[0]);
   cloud_cells_unref(buf[1]);
   j->code = PROTO_E_INTERNAL;

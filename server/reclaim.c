@@ -1,44 +1,109 @@
 /*
- * The reclaimer (reclaim.h): a list of blocks and a thread that frees them. Each block is
- * linked through a small node; when the node cannot be allocated, the block is freed on the
- * caller, which is only slower.
+ * The reclaimer (reclaim.h): a list of the big blocks dropped, newest first, and a thread that
+ * frees them once they are older than RECLAIM_KEEP_MS or past the store's bounds. Until then
+ * reclaim_alloc can take one back. Each block is linked through a small node; when the node
+ * cannot be allocated, the block is freed on the caller, which is only slower.
+ *
+ * Under AddressSanitizer a kept block is poisoned, so that a use after its free is still
+ * reported, and unpoisoned when it is taken back.
  */
 #include "reclaim.h"
 
 #include <pthread.h>
 #include <stdbool.h>
+#include <stdint.h>
 #include <stdlib.h>
+#include <time.h>
+
+#if defined(__SANITIZE_ADDRESS__)
+#include <sanitizer/asan_interface.h>
+#define KEPT_POISON(p, n) ASAN_POISON_MEMORY_REGION(p, n)
+#define KEPT_UNPOISON(p, n) ASAN_UNPOISON_MEMORY_REGION(p, n)
+#else
+#define KEPT_POISON(p, n) ((void)(p), (void)(n))
+#define KEPT_UNPOISON(p, n) ((void)(p), (void)(n))
+#endif
 
 typedef struct reclaim_node {
   struct reclaim_node *next;
   void *block;
+  size_t bytes;
+  uint64_t dropped_ms; /* CLOCK_MONOTONIC, when reclaim_free took it. */
 } reclaim_node_t;
 
 static pthread_mutex_t g_lock = PTHREAD_MUTEX_INITIALIZER;
-static pthread_cond_t g_wake = PTHREAD_COND_INITIALIZER;
+static pthread_cond_t g_wake;
 static pthread_t g_thread;
 static bool g_running, g_stopping;
-static reclaim_node_t *g_queue;
-static size_t g_handed;
+static reclaim_node_t *g_kept; /* Newest first. */
+static size_t g_kept_count, g_kept_bytes;
+static size_t g_handed, g_reused;
+
+static uint64_t now_ms(void) {
+  struct timespec ts;
+  clock_gettime(CLOCK_MONOTONIC, &ts);
+  return (uint64_t)ts.tv_sec * 1000 + (uint64_t)ts.tv_nsec / 1000000;
+}
+
+/* Unlinks the blocks that are due (all when the reclaimer stops) and returns them as a list;
+ * sets '*wait_ms' to when the oldest one left falls due, or 0 when none is left. g_lock held. */
+static reclaim_node_t *take_due(uint64_t now, uint64_t *wait_ms) {
+  reclaim_node_t **at = &g_kept;
+  size_t count = 0, bytes = 0;
+  /* The newest blocks within the bounds stay; the first one past them, and all older, go. */
+  while (*at && !g_stopping) {
+    reclaim_node_t *k = *at;
+    if (count + 1 > RECLAIM_KEEP_BLOCKS || bytes + k->bytes > RECLAIM_KEEP_BYTES ||
+        now - k->dropped_ms >= RECLAIM_KEEP_MS)
+      break;
+    count++, bytes += k->bytes;
+    at = &k->next;
+  }
+  reclaim_node_t *due = *at;
+  *at = NULL;
+  g_kept_count = count, g_kept_bytes = bytes;
+  /* The oldest kept block is the last in the list. */
+  *wait_ms = 0;
+  for (reclaim_node_t *k = g_kept; k; k = k->next)
+    if (!k->next)
+      *wait_ms = k->dropped_ms + RECLAIM_KEEP_MS - now;
+  return due;
+}
+
+static void free_list(reclaim_node_t *list) {
+  while (list) {
+    reclaim_node_t *next = list->next;
+    KEPT_UNPOISON(list->block, list->bytes);
+    free(list->block);
+    free(list);
+    list = next;
+  }
+}
 
 static void *reclaim_main(void *arg) {
   (void)arg;
   pthread_mutex_lock(&g_lock);
   for (;;) {
-    while (!g_queue && !g_stopping)
-      pthread_cond_wait(&g_wake, &g_lock);
-    reclaim_node_t *list = g_queue;
-    g_queue = NULL;
-    if (!list && g_stopping)
-      break;
-    pthread_mutex_unlock(&g_lock);
-    while (list) {
-      reclaim_node_t *next = list->next;
-      free(list->block);
-      free(list);
-      list = next;
+    uint64_t wait_ms;
+    reclaim_node_t *due = take_due(now_ms(), &wait_ms);
+    if (due) {
+      pthread_mutex_unlock(&g_lock);
+      free_list(due);
+      pthread_mutex_lock(&g_lock);
+      continue;
     }
-    pthread_mutex_lock(&g_lock);
+    if (g_stopping)
+      break;
+    if (wait_ms == 0) {
+      pthread_cond_wait(&g_wake, &g_lock);
+    } else {
+      struct timespec ts;
+      clock_gettime(CLOCK_MONOTONIC, &ts);
+      uint64_t ns = (uint64_t)ts.tv_nsec + (wait_ms % 1000) * 1000000;
+      ts.tv_sec += (time_t)(wait_ms / 1000 + ns / 1000000000);
+      ts.tv_nsec = (long)(ns % 1000000000);
+      pthread_cond_timedwait(&g_wake, &g_lock, &ts);
+    }
   }
   pthread_mutex_unlock(&g_lock);
   return NULL;
@@ -48,9 +113,19 @@ int reclaim_start(void) {
   pthread_mutex_lock(&g_lock);
   int rc = 0;
   if (!g_running) {
+    pthread_condattr_t attr;
+    rc = pthread_condattr_init(&attr) == 0 &&
+                 pthread_condattr_setclock(&attr, CLOCK_MONOTONIC) == 0 &&
+                 pthread_cond_init(&g_wake, &attr) == 0
+             ? 0
+             : -1;
+    pthread_condattr_destroy(&attr);
     g_stopping = false;
-    g_handed = 0;
-    rc = pthread_create(&g_thread, NULL, reclaim_main, NULL) == 0 ? 0 : -1;
+    g_handed = g_reused = 0;
+    if (rc == 0 && pthread_create(&g_thread, NULL, reclaim_main, NULL) != 0) {
+      pthread_cond_destroy(&g_wake);
+      rc = -1;
+    }
     g_running = rc == 0;
   }
   pthread_mutex_unlock(&g_lock);
@@ -61,13 +136,15 @@ void reclaim_stop(void) {
   pthread_mutex_lock(&g_lock);
   bool running = g_running;
   g_stopping = true;
-  pthread_cond_signal(&g_wake);
+  if (running)
+    pthread_cond_signal(&g_wake);
   pthread_mutex_unlock(&g_lock);
   if (!running)
     return;
   pthread_join(g_thread, NULL);
   pthread_mutex_lock(&g_lock);
   g_running = false;
+  pthread_cond_destroy(&g_wake);
   pthread_mutex_unlock(&g_lock);
 }
 
@@ -78,11 +155,15 @@ void reclaim_free(void *block, size_t bytes) {
   if (n) {
     pthread_mutex_lock(&g_lock);
     if (g_running && !g_stopping) {
-      n->block = block;
-      n->next = g_queue;
-      g_queue = n;
+      KEPT_POISON(block, bytes);
+      *n = (reclaim_node_t){.next = g_kept, .block = block, .bytes = bytes, .dropped_ms = now_ms()};
+      g_kept = n;
+      g_kept_count++, g_kept_bytes += bytes;
       g_handed++;
-      pthread_cond_signal(&g_wake);
+      /* The thread need not wake for a block within the bounds: it wakes for the oldest. */
+      if (g_kept_count > RECLAIM_KEEP_BLOCKS || g_kept_bytes > RECLAIM_KEEP_BYTES ||
+          g_kept_count == 1)
+        pthread_cond_signal(&g_wake);
       pthread_mutex_unlock(&g_lock);
       return;
     }
@@ -92,9 +173,37 @@ void reclaim_free(void *block, size_t bytes) {
   free(block);
 }
 
+void *reclaim_alloc(size_t bytes) {
+  if (bytes >= RECLAIM_MIN_BYTES) {
+    pthread_mutex_lock(&g_lock);
+    for (reclaim_node_t **at = &g_kept; *at; at = &(*at)->next) {
+      reclaim_node_t *k = *at;
+      if (k->bytes != bytes)
+        continue;
+      *at = k->next;
+      g_kept_count--, g_kept_bytes -= bytes;
+      g_reused++;
+      pthread_mutex_unlock(&g_lock);
+      void *block = k->block;
+      free(k);
+      KEPT_UNPOISON(block, bytes);
+      return block;
+    }
+    pthread_mutex_unlock(&g_lock);
+  }
+  return malloc(bytes);
+}
+
 size_t reclaim_handed(void) {
   pthread_mutex_lock(&g_lock);
   size_t n = g_handed;
+  pthread_mutex_unlock(&g_lock);
+  return n;
+}
+
+size_t reclaim_reused(void) {
+  pthread_mutex_lock(&g_lock);
+  size_t n = g_reused;
   pthread_mutex_unlock(&g_lock);
   return n;
 }

@@ -5,7 +5,9 @@
  */
 /* render_scene.h uses size_t without including <stddef.h>; until it does, this comes first. */
 #include <stddef.h>
+#include <stdint.h>
 #include <stdlib.h>
+#include <string.h>
 
 #include "reclaim.h"
 #include "render_scene.h"
@@ -71,14 +73,14 @@ void particles_unref(particles_t *p) {
   free(p);
 }
 
-density_grid_t *density_grid_new(const uint32_t dims[3]) {
+density_grid_t *density_grid_alloc(const uint32_t dims[3]) {
   if (!dims[0] || !dims[1] || !dims[2])
     return NULL;
   density_grid_t *g = calloc(1, sizeof *g);
   if (!g)
     return NULL;
   size_t n = (size_t)dims[0] * dims[1] * dims[2];
-  g->data = calloc(n, sizeof(float));
+  g->data = n <= SIZE_MAX / sizeof(float) ? reclaim_alloc(n * sizeof(float)) : NULL;
   if (!g->data) {
     free(g);
     return NULL;
@@ -86,6 +88,13 @@ density_grid_t *density_grid_new(const uint32_t dims[3]) {
   atomic_init(&g->refs, 1);
   for (int i = 0; i < 3; i++)
     g->dims[i] = dims[i];
+  return g;
+}
+
+density_grid_t *density_grid_new(const uint32_t dims[3]) {
+  density_grid_t *g = density_grid_alloc(dims);
+  if (g)
+    memset(g->data, 0, (size_t)dims[0] * dims[1] * dims[2] * sizeof(float));
   return g;
 }
 

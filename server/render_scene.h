@@ -105,6 +105,8 @@ typedef struct density_grid {
 
 /* A zeroed grid of the given dimensions with one reference; NULL on OOM or a zero side. */
 density_grid_t *density_grid_new(const uint32_t dims[3]);
+/* The same with the densities not set, for a caller that writes every one. */
+density_grid_t *density_grid_alloc(const uint32_t dims[3]);
 density_grid_t *density_grid_ref(density_grid_t *g);
 /* Drops a reference; NULL is fine. */
 void density_grid_unref(density_grid_t *g);

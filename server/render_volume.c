@@ -42,12 +42,12 @@ typedef struct vol_entry {
   /* The data. */
   float *baked; /* VOLUME_NOISE: the baked density (owned); NULL for grids. */
   uint32_t dims[3];
-  float *scratch;         /* Extinction, then light, two floats a voxel (owned): the light is
-                             packed with the density into the device buffer at upload. */
+  float *scratch;         /* The light, a float a voxel (owned), packed with the density into
+                             the device buffer at upload. */
   size_t scratch_cap;     /* Floats 'scratch' holds room for. */
   float tmin[3], tmax[3]; /* Tight box. */
   int empty;              /* No voxel is above zero. */
-  size_t off;             /* Offset in the device buffer, float4s. */
+  size_t off;             /* Offset in the device buffer, voxels (float2s). */
 } vol_entry_t;
 
 /* What the cached shadow map was rendered from. */
@@ -265,17 +265,19 @@ typedef struct sweep {
   uint32_t *ub0, *ub1, *uc0, *uc1;
   float *ubw0, *ubw1, *ucw0, *ucw1;
   span_t up;
-  const float *sg;
+  const float *sg; /* The density: sigma times it is the extinction. */
   float *lg;
-  float half;           /* 1/2 the world length of a step between slices. */
+  float half;           /* sigma times 1/2 the world length of a step between slices: the
+                           extinctions below are in units of sigma. */
   sweep_barrier_t *bar; /* Between the threads' phases, or NULL with one thread. */
 } sweep_t;
 
-/* A thread's share: lattice rows [l0, l1) and voxel rows [v0, v1) (axis b) of every slice, and
- * its own taps of the lattice into the slice, rebuilt per slice (lattice_taps). */
+/* A thread's share: part 'index' of 'parts' of the lattice rows of every slice (sweep_rows),
+ * voxel rows [v0, v1) (axis b) of every slice, and its own taps of the lattice into the slice,
+ * rebuilt per slice (lattice_taps). */
 typedef struct sweep_part {
   const sweep_t *w;
-  int l0, l1, v0, v1;
+  int index, parts, v0, v1;
   uint32_t *bi0, *bi1, *ci0, *ci1;
   float *bw0, *bw1, *cw0, *cw1;
 } sweep_part_t;
@@ -307,8 +309,8 @@ static void lattice_taps(uint32_t *i0, uint32_t *i1, float *w0, float *w1, int c
 PAR_CLONES static void lattice_row(float *restrict out, const float *restrict in,
                                    float *restrict ext, const float *restrict r0,
                                    const float *restrict r1, float b0, float b1,
-                                   const sweep_part_t *p, span_t sp, size_t sc, int wc, int first,
-                                   float half) {
+                                   const sweep_part_t *p, span_t sp, int in0, int in1, size_t sc,
+                                   int wc, int first, float half) {
   const uint32_t *restrict c0 = p->ci0, *restrict c1 = p->ci1;
   const float *restrict w0 = p->cw0, *restrict w1 = p->cw1;
   float f = sp.f, g = 1 - f;
@@ -325,7 +327,12 @@ PAR_CLONES static void lattice_row(float *restrict out, const float *restrict in
       LATTICE_RAY(0.0f);
     return;
   }
-  for (int j = 0; j < sp.lo; j++)
+  /* Rays beside the slice along c (j < in0, j >= in1) meet nothing either; the contiguous span
+   * lies between them. */
+  int zl = in0 < sp.lo ? in0 : sp.lo, zh = in1 > sp.hi ? in1 : sp.hi;
+  for (int j = 0; j < zl; j++)
+    LATTICE_RAY(0.0f);
+  for (int j = zl; j < sp.lo; j++)
     LATTICE_RAY(LATTICE_TAPS(j));
   const float *q0 = r0 + (ptrdiff_t)sp.base * (ptrdiff_t)sc,
               *q1 = r1 + (ptrdiff_t)sp.base * (ptrdiff_t)sc;
@@ -336,8 +343,10 @@ PAR_CLONES static void lattice_row(float *restrict out, const float *restrict in
     for (int j = sp.lo; j < sp.hi; j++)
       LATTICE_RAY(b0 * (g * q0[j * sc] + f * q0[(j + 1) * sc]) +
                   b1 * (g * q1[j * sc] + f * q1[(j + 1) * sc]));
-  for (int j = sp.hi; j < wc; j++)
+  for (int j = sp.hi; j < zh; j++)
     LATTICE_RAY(LATTICE_TAPS(j));
+  for (int j = zh; j < wc; j++)
+    LATTICE_RAY(0.0f);
 #undef LATTICE_TAPS
 #undef LATTICE_RAY
 }
@@ -390,6 +399,14 @@ PAR_CLONES static void voxel_row(float *restrict out, const float *restrict here
 #undef SWEEP_VOXEL
 }
 
+/* The lattice's rays j in [*j0, *j1) of 'count' along a lateral axis of 'n' voxels, at voxel
+ * coordinate first + j - off in the slice, that meet it (lattice_taps' weights not both 0). */
+static void lattice_inside(double off, int first, uint32_t n, int count, int *j0, int *j1) {
+  int a = (int)ceil(off - 0.5 - first), b = (int)floor(off + n - 0.5 - first) + 1;
+  *j0 = a < 0 ? 0 : a > count ? count : a;
+  *j1 = b < *j0 ? *j0 : b > count ? count : b;
+}
+
 static void *sweep_rows(void *arg) {
   sweep_part_t *p = arg;
   const sweep_t *w = p->w;
@@ -421,10 +438,22 @@ static void *sweep_rows(void *arg) {
     lattice_taps(p->bi0, p->bi1, p->bw0, p->bw1, w->wb, w->jb0, ob, n[b], stride[b]);
     lattice_taps(p->ci0, p->ci1, p->cw0, p->cw1, w->wc, w->jc0, oc, n[c], stride[c]);
     span_t sp = span_of(w->jc0, oc, n[c], w->wc);
-    for (int jb = p->l0; jb < p->l1; jb++) {
-      size_t row = (size_t)jb * w->wc;
-      lattice_row(out + row, in + row, w->ext + row, slice + p->bi0[jb], slice + p->bi1[jb],
-                  p->bw0[jb], p->bw1[jb], p, sp, stride[c], w->wc, k == 0, w->half);
+    /* The rows whose rays cross the slice, [in0, in1), cost more than those beside it, and
+     * which they are moves from slice to slice: each thread takes its share of both. Along a
+     * row, the rays [cin0, cin1) cross it. */
+    int in0, in1, cin0, cin1;
+    lattice_inside(ob, w->jb0, n[b], w->wb, &in0, &in1);
+    lattice_inside(oc, w->jc0, n[c], w->wc, &cin0, &cin1);
+    int cut[4] = {0, in0, in1, w->wb};
+    for (int r = 0; r < 3; r++) {
+      int64_t len = cut[r + 1] - cut[r];
+      int j0 = cut[r] + (int)(len * p->index / p->parts),
+          j1 = cut[r] + (int)(len * (p->index + 1) / p->parts);
+      for (int jb = j0; jb < j1; jb++) {
+        size_t row = (size_t)jb * w->wc;
+        lattice_row(out + row, in + row, w->ext + row, slice + p->bi0[jb], slice + p->bi1[jb],
+                    p->bw0[jb], p->bw1[jb], p, sp, cin0, cin1, stride[c], w->wc, k == 0, w->half);
+      }
     }
     if (w->bar)
       sweep_wait(w->bar);
@@ -445,18 +474,15 @@ static void lattice_span(uint32_t n, double d, uint32_t slices, int *first, int 
  * (direction 'l', unit) through the volume, for extinction sigma * density, by one sweep along
  * the light's rays (sweep_t). Returns 0, or -1 when out of memory.
  */
-static int light_grid(vol_entry_t *e, const float *dens, float sigma, const float l[3], float *sg,
-                      float *lg) {
+static int light_grid(vol_entry_t *e, const float *dens, float sigma, const float l[3], float *lg) {
   uint32_t *n = e->dims;
   size_t nl = (size_t)n[0] * n[1] * n[2];
-  /* Extinction at the voxel centres. */
+  /* The light's direction in voxels per world unit. */
   double cell[3], lv[3];
   for (int k = 0; k < 3; k++) {
     cell[k] = ((double)e->max[k] - e->min[k]) / n[k];
     lv[k] = l[k] / cell[k];
   }
-  for (size_t i = 0; i < nl; i++)
-    sg[i] = sigma * dens[i];
   int a = 0;
   for (int k = 1; k < 3; k++)
     if (fabs(lv[k]) > fabs(lv[a]))
@@ -478,9 +504,9 @@ static int light_grid(vol_entry_t *e, const float *dens, float sigma, const floa
                .stride = {1, n[0], (size_t)n[0] * n[1]},
                .db = lv[b] * step,
                .dc = lv[c] * step,
-               .sg = sg,
+               .sg = dens,
                .lg = lg,
-               .half = (float)(0.5 * step)};
+               .half = (float)(0.5 * step * sigma)};
   lattice_span(n[b], w.db, n[a], &w.jb0, &w.wb);
   lattice_span(n[c], w.dc, n[a], &w.jc0, &w.wc);
   size_t cells = (size_t)w.wb * w.wc;
@@ -507,8 +533,8 @@ static int light_grid(vol_entry_t *e, const float *dens, float sigma, const floa
   for (int i = 0; i < parts; i++) {
     sweep_part_t *q = &part[i];
     *q = (sweep_part_t){.w = &w,
-                        .l0 = (int)((int64_t)w.wb * i / parts),
-                        .l1 = (int)((int64_t)w.wb * (i + 1) / parts),
+                        .index = i,
+                        .parts = parts,
                         .v0 = (int)((uint64_t)n[b] * i / parts),
                         .v1 = (int)((uint64_t)n[b] * (i + 1) / parts)};
     q->bi0 = malloc(w.wb * sizeof *q->bi0), q->bi1 = malloc(w.wb * sizeof *q->bi1);
@@ -524,7 +550,7 @@ static int light_grid(vol_entry_t *e, const float *dens, float sigma, const floa
     if (parts == 1 || par_run_together(sweep_rows, part, sizeof *part, parts) != 0) {
       w.bar = NULL;
       sweep_part_t *q = &part[0];
-      q->l0 = 0, q->l1 = w.wb, q->v0 = 0, q->v1 = (int)n[b];
+      q->index = 0, q->parts = 1, q->v0 = 0, q->v1 = (int)n[b];
       sweep_rows(q);
     }
   }
@@ -574,11 +600,11 @@ static void *pack_rows(void *arg) {
     p->lo[k] = INT32_MAX, p->hi[k] = -1;
   for (size_t r = p->row0; r < p->row1; r++) {
     size_t row = r * nx;
-    float *q = p->dst + 4 * row;
+    float *q = p->dst + 2 * row;
     int xl = -1, xh = -1;
-    for (uint32_t x = 0; x < nx; x++, q += 4) {
-      size_t i = row + x, j = x + 1 < nx ? i + 1 : i;
-      q[0] = dens[i], q[1] = dens[j], q[2] = lg[i], q[3] = lg[j];
+    for (uint32_t x = 0; x < nx; x++, q += 2) {
+      size_t i = row + x;
+      q[0] = dens[i], q[1] = lg[i];
       if (dens[i] > 0) {
         xl = xl < 0 ? (int)x : xl;
         xh = (int)x;
@@ -676,8 +702,8 @@ static int entry_build(vol_entry_t *e, const rvolume_t *v, float sigma, const fl
     e->valid = 1;
     return 0;
   }
-  if (reserve(&e->scratch, &e->scratch_cap, 2 * n) != 0 ||
-      light_grid(e, dens, sigma, l, e->scratch, e->scratch + n) != 0)
+  if (reserve(&e->scratch, &e->scratch_cap, n) != 0 ||
+      light_grid(e, dens, sigma, l, e->scratch) != 0)
     return -1;
   e->valid = 1;
   return 0;
@@ -1046,12 +1072,12 @@ int render_pass_volumes(renderer_t *r, const render_scene_t *scene, unsigned lay
       continue;
     changed |= e->off != total;
     e->off = total;
-    total += nd;
+    total += nd + 1; /* One voxel more, zero: the x-pair of the last is read at weight 0. */
   }
   changed |= total != vs->data_floats;
   if (total == 0)
     goto done;
-  if (render_ensure_buffer(r, &vs->data, &vs->cap_data, total, 4 * sizeof(float), CL_MEM_READ_ONLY,
+  if (render_ensure_buffer(r, &vs->data, &vs->cap_data, total, 2 * sizeof(float), CL_MEM_READ_ONLY,
                            1, err, errlen)) {
     rc = PROTO_E_DEVICE;
     goto done;
@@ -1067,11 +1093,12 @@ int render_pass_volumes(renderer_t *r, const render_scene_t *scene, unsigned lay
         continue;
       size_t nd = (size_t)e->dims[0] * e->dims[1] * e->dims[2];
       float *dst = clEnqueueMapBuffer(r->dev.queue, vs->data, CL_TRUE,
-                                      CL_MAP_WRITE_INVALIDATE_REGION, e->off * 4 * sizeof(float),
-                                      nd * 4 * sizeof(float), 0, NULL, NULL, &cr);
+                                      CL_MAP_WRITE_INVALIDATE_REGION, e->off * 2 * sizeof(float),
+                                      (nd + 1) * 2 * sizeof(float), 0, NULL, NULL, &cr);
       if (cr != CL_SUCCESS)
         break;
-      pack(e, e->grid ? e->grid->data : e->baked, e->scratch + nd, dst);
+      pack(e, e->grid ? e->grid->data : e->baked, e->scratch, dst);
+      dst[2 * nd] = dst[2 * nd + 1] = 0;
       cr = clEnqueueUnmapMemObject(r->dev.queue, vs->data, dst, 0, NULL, NULL);
     }
     if (cr == CL_SUCCESS)

@@ -645,10 +645,12 @@ int cloud_density(const cloud_cells_t *c, double r, float *out) {
   /* 'b' holds every plane after the x and y passes; each part has a plane 'a' after the x
    * pass and a padded row. */
   size_t rowlen = (size_t)c->words * 64 + TAB_W(K), tablen = 256 * (size_t)TAB_W(K);
-  float *mem = malloc((BSTRIDE(plane) * nz + tablen + (size_t)n * (plane + rowlen)) * sizeof *mem);
+  /* As big as the grid: taken back from the last step's (reclaim.h) when it can be. */
+  size_t bytes = (BSTRIDE(plane) * nz + tablen + (size_t)n * (plane + rowlen)) * sizeof(float);
+  float *mem = reclaim_alloc(bytes);
   uint8_t *flags = malloc((size_t)ny * (nz + (size_t)n));
   if (!mem || !flags) {
-    free(mem);
+    reclaim_free(mem, bytes);
     free(flags);
     return -1;
   }
@@ -673,14 +675,30 @@ int cloud_density(const cloud_cells_t *c, double r, float *out) {
   }
   par_run(part_xy, parts, sizeof *parts, n);
   par_run(part_z, parts, sizeof *parts, n);
-  free(mem);
+  reclaim_free(mem, bytes);
   free(flags);
   return 0;
 }
 
-void cloud_blend(float *target, const float *shown, size_t n, float keep) {
-  for (size_t i = 0; i < n; i++)
-    target[i] += keep * (shown[i] - target[i]);
+void cloud_blend_shifted(float *restrict target, const float *restrict shown, const uint32_t n[3],
+                         long s, float keep) {
+  size_t nx = n[0], rows = (size_t)n[1] * n[2];
+  size_t k = (size_t)(s < 0 ? -s : s);
+  if (k > nx)
+    k = nx;
+  /* Along a row, target x blends shown x - s; the k cells nothing moves into blend 0. */
+  size_t lo = s > 0 ? k : 0, hi = s > 0 ? nx : nx - k;
+  ptrdiff_t from = s > 0 ? -(ptrdiff_t)k : (ptrdiff_t)k;
+  for (size_t r = 0; r < rows; r++) {
+    float *t = target + r * nx;
+    const float *src = shown + r * nx + from;
+    for (size_t x = 0; x < lo; x++)
+      t[x] -= keep * t[x];
+    for (size_t x = lo; x < hi; x++)
+      t[x] += keep * (src[x] - t[x]);
+    for (size_t x = hi; x < nx; x++)
+      t[x] -= keep * t[x];
+  }
 }
 
 long cloud_wind_shift(const cloud_params_t *p, uint64_t from, uint64_t to) {
@@ -694,23 +712,4 @@ double cloud_wind_fraction(const cloud_params_t *p, uint64_t step) {
     return 0;
   double x = (double)step * p->wind;
   return x - floor(x);
-}
-
-void cloud_density_shift(float *d, const uint32_t n[3], long s) {
-  if (s == 0)
-    return;
-  size_t nx = n[0], rows = (size_t)n[1] * n[2];
-  size_t k = (size_t)(s < 0 ? -s : s);
-  if (k > nx)
-    k = nx;
-  for (size_t r = 0; r < rows; r++) {
-    float *row = d + r * nx;
-    if (s > 0) {
-      memmove(row + k, row, (nx - k) * sizeof *row);
-      memset(row, 0, k * sizeof *row);
-    } else {
-      memmove(row, row + k, (nx - k) * sizeof *row);
-      memset(row + nx - k, 0, k * sizeof *row);
-    }
-  }
 }

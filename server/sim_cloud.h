@@ -123,10 +123,6 @@ long cloud_wind_shift(const cloud_params_t *p, uint64_t from, uint64_t to);
  * that far along +x, so that it drifts smoothly instead of jumping a cell every 1 / w steps. */
 double cloud_wind_fraction(const cloud_params_t *p, uint64_t step);
 
-/* Moves a density grid of dimensions 'n' (x fastest) by 's' cells along x: new[x] = old[x - s],
- * zero where nothing moves in. */
-void cloud_density_shift(float *d, const uint32_t n[3], long s);
-
 /* The number of taps either side of the centre for metaball radius 'r' voxels: floor(r). */
 int cloud_kernel_half(double r);
 /*
@@ -144,9 +140,11 @@ int cloud_kernel(double r, float *w);
  */
 int cloud_density(const cloud_cells_t *c, double r, float *out);
 
-/* The density shown after a step, in place of 'target' (n floats): the new density 'target'
- * with the fraction 'keep' of the difference from the density 'shown' before it kept:
- * target = target + keep × (shown - target). */
-void cloud_blend(float *target, const float *shown, size_t n, float keep);
+/* The density shown after a step, in place of 'target' (a grid of dimensions 'n', x fastest):
+ * the new density 'target' with the fraction 'keep' of the difference from the density 'shown'
+ * before it kept, shown moved by 's' cells along x first (the wind; 0 where nothing moves in):
+ * target[x] = target[x] + keep × (shown[x - s] - target[x]). */
+void cloud_blend_shifted(float *restrict target, const float *restrict shown, const uint32_t n[3],
+                         long s, float keep);
 
 #endif

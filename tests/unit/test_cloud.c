@@ -397,11 +397,30 @@ static void test_density_full(void) {
   cloud_cells_unref(c);
 }
 
+/* The blend with the density before, moved by the wind, against the same written out cell by
+ * cell: shifts of 0, 2, -3 and more than a row along x, on a 5 x 2 x 2 grid. */
 static void test_blend(void) {
   float shown[3] = {0, 1, 2}, target[3] = {2, 1, 0};
-  cloud_blend(target, shown, 3, 0.25f);
+  const uint32_t line[3] = {3, 1, 1}, n[3] = {5, 2, 2};
+  cloud_blend_shifted(target, shown, line, 0, 0.25f);
   CHECK(target[0] == 1.5f && target[1] == 1 && target[2] == 0.5f, "blend %g %g %g", target[0],
         target[1], target[2]);
+  const long shifts[] = {0, 2, -3, 7, -9};
+  for (size_t k = 0; k < sizeof shifts / sizeof shifts[0]; k++) {
+    long s = shifts[k];
+    float before[20], got[20];
+    for (int i = 0; i < 20; i++)
+      before[i] = (float)(i + 1), got[i] = (float)(100 - 3 * i);
+    cloud_blend_shifted(got, before, n, s, 0.5f);
+    int bad = 0;
+    for (int i = 0; i < 20 && !bad; i++) {
+      long x = i % 5 - s;
+      float moved = x >= 0 && x < 5 ? before[i - i % 5 + x] : 0;
+      float want = (float)(100 - 3 * i) + 0.5f * (moved - (float)(100 - 3 * i));
+      bad = got[i] != want;
+      CHECK(!bad, "shift %ld: cell %d is %g, want %g", s, i, got[i], want);
+    }
+  }
 }
 
 /* Applies the merge patch 'json' to 's'; returns scene_patch's result with 'err'. */
