@@ -1,8 +1,8 @@
 /*
- * The reclaimer (reclaim.h): a list of the big blocks dropped, newest first, and a thread that
- * frees them once they are older than RECLAIM_KEEP_MS or past the store's bounds. Until then
- * reclaim_alloc can take one back. Each block is linked through a small node; when the node
- * cannot be allocated, the block is freed on the caller, which is only slower.
+ * The reclaimer (reclaim.h): a list of the big blocks dropped, newest first and within the
+ * store's bounds, from which reclaim_alloc can take one back, and a thread that frees those
+ * older than RECLAIM_KEEP_MS and those pushed past the bounds. Each block is linked through a small
+ * node; when the node cannot be allocated, the block is freed on the caller, which is only slower.
  *
  * Under AddressSanitizer a kept block is poisoned, so that a use after its free is still
  * reported, and unpoisoned when it is taken back.
@@ -35,7 +35,8 @@ static pthread_mutex_t g_lock = PTHREAD_MUTEX_INITIALIZER;
 static pthread_cond_t g_wake;
 static pthread_t g_thread;
 static bool g_running, g_stopping;
-static reclaim_node_t *g_kept; /* Newest first. */
+static reclaim_node_t *g_kept; /* Newest first, within the bounds. */
+static reclaim_node_t *g_due;  /* To be freed by the thread. */
 static size_t g_kept_count, g_kept_bytes;
 static size_t g_handed, g_reused;
 
@@ -45,12 +46,12 @@ static uint64_t now_ms(void) {
   return (uint64_t)ts.tv_sec * 1000 + (uint64_t)ts.tv_nsec / 1000000;
 }
 
-/* Unlinks the blocks that are due (all when the reclaimer stops) and returns them as a list;
- * sets '*wait_ms' to when the oldest one left falls due, or 0 when none is left. g_lock held. */
-static reclaim_node_t *take_due(uint64_t now, uint64_t *wait_ms) {
+/* Moves the kept blocks past the bounds, or older than 'now' allows (all when the reclaimer
+ * stops), to the list to free. g_lock held. */
+static void trim(uint64_t now) {
   reclaim_node_t **at = &g_kept;
   size_t count = 0, bytes = 0;
-  /* The newest blocks within the bounds stay; the first one past them, and all older, go. */
+  /* Newest first: once one block is past a bound, all older ones are too. */
   while (*at && !g_stopping) {
     reclaim_node_t *k = *at;
     if (count + 1 > RECLAIM_KEEP_BLOCKS || bytes + k->bytes > RECLAIM_KEEP_BYTES ||
@@ -59,15 +60,23 @@ static reclaim_node_t *take_due(uint64_t now, uint64_t *wait_ms) {
     count++, bytes += k->bytes;
     at = &k->next;
   }
-  reclaim_node_t *due = *at;
+  reclaim_node_t *old = *at;
   *at = NULL;
   g_kept_count = count, g_kept_bytes = bytes;
-  /* The oldest kept block is the last in the list. */
-  *wait_ms = 0;
+  while (old) {
+    reclaim_node_t *next = old->next;
+    old->next = g_due;
+    g_due = old;
+    old = next;
+  }
+}
+
+/* Milliseconds from 'now' until the oldest kept block falls due, or 0 when none is kept. */
+static uint64_t next_due(uint64_t now) {
   for (reclaim_node_t *k = g_kept; k; k = k->next)
     if (!k->next)
-      *wait_ms = k->dropped_ms + RECLAIM_KEEP_MS - now;
-  return due;
+      return k->dropped_ms + RECLAIM_KEEP_MS > now ? k->dropped_ms + RECLAIM_KEEP_MS - now : 1;
+  return 0;
 }
 
 static void free_list(reclaim_node_t *list) {
@@ -84,9 +93,11 @@ static void *reclaim_main(void *arg) {
   (void)arg;
   pthread_mutex_lock(&g_lock);
   for (;;) {
-    uint64_t wait_ms;
-    reclaim_node_t *due = take_due(now_ms(), &wait_ms);
-    if (due) {
+    uint64_t now = now_ms();
+    trim(now);
+    if (g_due) {
+      reclaim_node_t *due = g_due;
+      g_due = NULL;
       pthread_mutex_unlock(&g_lock);
       free_list(due);
       pthread_mutex_lock(&g_lock);
@@ -94,6 +105,7 @@ static void *reclaim_main(void *arg) {
     }
     if (g_stopping)
       break;
+    uint64_t wait_ms = next_due(now);
     if (wait_ms == 0) {
       pthread_cond_wait(&g_wake, &g_lock);
     } else {
@@ -160,9 +172,12 @@ void reclaim_free(void *block, size_t bytes) {
       g_kept = n;
       g_kept_count++, g_kept_bytes += bytes;
       g_handed++;
-      /* The thread need not wake for a block within the bounds: it wakes for the oldest. */
-      if (g_kept_count > RECLAIM_KEEP_BLOCKS || g_kept_bytes > RECLAIM_KEEP_BYTES ||
-          g_kept_count == 1)
+      /* Past the bounds, the oldest go at once. Else the thread need not wake unless this is
+       * the only block kept: it waits for the oldest's time. */
+      int over = g_kept_count > RECLAIM_KEEP_BLOCKS || g_kept_bytes > RECLAIM_KEEP_BYTES;
+      if (over)
+        trim(n->dropped_ms);
+      if (over || g_kept_count == 1)
         pthread_cond_signal(&g_wake);
       pthread_mutex_unlock(&g_lock);
       return;
