@@ -19,5 +19,11 @@ int cloud_busy(const scene_entry_t *e);
  * Returns 0, or -1 when the worker's queue is full (nothing submitted).
  */
 int cloud_submit_step(server_t *srv, scene_entry_t *e, unsigned steps, call_t *call);
+/*
+ * Submits a job computing the density of the cells of 'e' anew, unsmoothed (after a change of
+ * cloud.metaball_radius), after the cloud jobs queued; 'call' is answered then with the
+ * scene's version at submission. Returns 0, or -1 as cloud_submit_step.
+ */
+int cloud_submit_density(server_t *srv, scene_entry_t *e, call_t *call);
 
 #endif

@@ -29,6 +29,8 @@ typedef struct cloud_job {
   uint64_t gen;          /* The scene's cloud_gen the job belongs to. */
   call_t *call;          /* Answered when done, or NULL. */
   const char *field;     /* cloud.set_cells: the field set; NULL for sim.step. */
+  int answers_version;   /* scene.set: answered with 'version'. */
+  uint64_t version;      /* The scene's version after that scene.set. */
   cloud_cells_t *in;     /* The scene's cells at submission (a reference). */
   density_grid_t *shown; /* The scene's density at submission (a reference). */
   cloud_link_t *prev;    /* The job queued before this one, or NULL (a reference). */
@@ -167,6 +169,10 @@ static void cloud_done(job_t *j) {
   if (cj->call) {
     if (j->code != 0) {
       call_error(cj->call, j->code, NULL, "%s: cloud: %s", proto_err_message(j->code), j->err);
+    } else if (cj->answers_version) {
+      cJSON *r = cJSON_CreateObject();
+      cJSON_AddNumberToObject(r, "version", (double)cj->version);
+      call_result(cj->call, r);
     } else if (cj->field) {
       cJSON *r = cJSON_CreateObject();
       cJSON_AddStringToObject(r, "field", cj->field);
@@ -250,6 +256,22 @@ int cloud_submit_step(server_t *srv, scene_entry_t *e, unsigned steps, call_t *c
   cloud_job_t *cj = job_new(srv, s, (unsigned)n, cfg.keep, call);
   if (!cj)
     return -1;
+  if (job_submit(srv, s, cj) != 0) {
+    job_free(cj);
+    return -1;
+  }
+  return 0;
+}
+
+int cloud_submit_density(server_t *srv, scene_entry_t *e, call_t *call) {
+  scene_t *s = e->scene;
+  if (!s->cloud_cells)
+    return -1;
+  cloud_job_t *cj = job_new(srv, s, 0, 0, call);
+  if (!cj)
+    return -1;
+  cj->answers_version = 1;
+  cj->version = s->version;
   if (job_submit(srv, s, cj) != 0) {
     job_free(cj);
     return -1;

@@ -11,6 +11,7 @@
 #include "dispatch.h"
 #include "fluid.h"
 #include "frames.h"
+#include "log.h"
 
 static void answer_scene_error(call_t *call, const scene_error_t *err, const char *fallback) {
   const char *path = err->path[0] ? err->path : fallback;
@@ -115,6 +116,11 @@ static void scene_set_m(call_t *call) {
   scene_error_t err = {0};
   defer_want_t want;
   int rc;
+  /* The cloud before the change: a new metaball radius for the same cells needs their density
+   * computed again. */
+  scene_cloud_t cloud_before;
+  int cloud_was = scene_cloud_config(e->scene, &cloud_before) == 0;
+  const cloud_cells_t *cells_before = e->scene->cloud_cells;
   if (patch && !path && !value) {
     if (!cJSON_IsObject(patch)) {
       call_error(call, PROTO_E_INVALID_PARAMS, "patch",
@@ -153,6 +159,20 @@ static void scene_set_m(call_t *call) {
   else if (playing && !cJSON_IsTrue(playing) && e->rate > 0)
     play_stop(e);
   cJSON_Delete(playing);
+  scene_cloud_t cloud_after;
+  if (cloud_was && cells_before && e->scene->cloud_cells == cells_before &&
+      scene_cloud_config(e->scene, &cloud_after) == 0 &&
+      cloud_after.radius != cloud_before.radius) {
+    /* Answered once the density shows the new radius; the connection's next requests wait. */
+    if (cloud_submit_density(call->srv, e, call) == 0) {
+      call_hold(call);
+      return;
+    }
+    LOG(LOG_WARN, "scene",
+        "scene '%s': the render queue is full; the cloud's density takes the "
+        "new metaball radius at its next step",
+        e->scene->name);
+  }
   cJSON *r = cJSON_CreateObject();
   cJSON_AddNumberToObject(r, "version", (double)e->scene->version);
   call_result(call, r);
