@@ -25,6 +25,7 @@
 #define VOL_ALBEDO 17 /* Single-scattering albedo, linear RGB. */
 #define VOL_SAMPLES 20 /* Samples per ray, int bits. */
 #define VOL_PHASE_G 21 /* Henyey-Greenstein asymmetry g in (-1, 1). */
+#define VOL_EDGE 22    /* 1 when the tight box reaches past the outer voxel centres, int bits. */
 #define VOL_STRIDE 32
 
 /* The pixels a volume work-item shades, one per vector lane (a float16): a block of

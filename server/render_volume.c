@@ -1141,7 +1141,12 @@ int render_pass_volumes(renderer_t *r, const render_scene_t *scene, unsigned lay
       memcpy(&rec[VOL_DIMS + k], &di, sizeof di);
       rec[VOL_ALBEDO + k] = v->albedo[k];
     }
-    int32_t off = (int32_t)e->off, ns = v->samples;
+    int32_t off = (int32_t)e->off, ns = v->samples, edge = 0;
+    for (int k = 0; k < 3; k++) {
+      double half = 0.5 * ((double)e->max[k] - e->min[k]) / e->dims[k];
+      edge |= e->tmin[k] < e->min[k] + half || e->tmax[k] > e->max[k] - half;
+    }
+    memcpy(&rec[VOL_EDGE], &edge, sizeof edge);
     memcpy(&rec[VOL_OFF], &off, sizeof off);
     memcpy(&rec[VOL_SAMPLES], &ns, sizeof ns);
     rec[VOL_SIGMA] = v->density;

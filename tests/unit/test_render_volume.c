@@ -882,8 +882,9 @@ static void test_noise(void) {
  * exp(-sigma (top - y)) at every voxel centre (the trapezoid rule is exact for a constant),
  * so the frame, with no ambient and an isotropic phase, is the sum over the kernel's own
  * samples of tr * (1 - exp(-sigma dt)) * T(p), T interpolated linearly in y between those
- * centre values. The grid has more voxels than SWEEP_THREAD_MIN (render_volume.c), so the sweep
- * runs on two threads; a race between them would show as a wrong or a changing frame.
+ * centre values and extended linearly from the two outer ones over the last half-voxels. The grid
+ * has more voxels than SWEEP_THREAD_MIN (render_volume.c), so the sweep runs on two threads; a race
+ * between them would show as a wrong or a changing frame.
  */
 static void test_light_sweep_threads(void) {
   const uint32_t nx = 70, ny = 66, nz = 64;
@@ -918,12 +919,12 @@ static void test_light_sweep_threads(void) {
         double dt = (t1 - t0) / n, a = 1 - exp(-sigma * dt);
         for (int i = 0; i < n; i++) {
           double py = ray.o[1] + (t0 + (i + 0.5) * dt) * ray.d[1];
-          double c = fmin(fmax((py - lo[1]) / cell - 0.5, 0), ny - 1.0);
-          int j0 = (int)c, j1 = j0 + 1 < (int)ny ? j0 + 1 : j0;
+          double c = fmin(fmax((py - lo[1]) / cell - 0.5, -0.5), ny - 0.5);
+          int j0 = (int)fmin(fmax(c, 0), ny - 2.0), j1 = j0 + 1;
           double f = c - j0;
           double l0 = exp(-sigma * (hi[1] - (lo[1] + (j0 + 0.5) * cell)));
           double l1 = exp(-sigma * (hi[1] - (lo[1] + (j1 + 0.5) * cell)));
-          want += tr * a * (l0 + f * (l1 - l0));
+          want += tr * a * fmin(fmax(l0 + f * (l1 - l0), 0), 1);
           tr *= 1 - a;
         }
       }
@@ -942,7 +943,10 @@ static void test_light_sweep_threads(void) {
 /*
  * A uniform 32³ grid lit from oblique directions, ambient 0, isotropic phase: against single
  * scattering with the exact transmittance towards the light, exp(-sigma d) for the distance d
- * to where the light's ray leaves the box, through whichever face, within 3.5% (protocol.md).
+ * to where the light's ray leaves the box, through whichever face: 0.35-0.45% off on average,
+ * the worst pixels (rays through a sliver along the box's edges) 6-7% (protocol.md). (Holding
+ * the light of the outer voxel centres over the last half-voxel, as the density is, gave
+ * 0.7-0.8% and 9-12%.)
  * (The sweep once let a ray that leaves through a side face run on along the outer column of
  * voxels to the far face: up to 79% too dark there; carrying the transmittance from slice to
  * slice, interpolated in each, left up to 18% where the exit changes face.)
@@ -972,14 +976,15 @@ static void test_light_grid_oblique(void) {
   double lo[3], hi[3];
   for (int k = 0; k < 3; k++)
     lo[k] = v.min[k], hi[k] = v.max[k];
-  const int w = 24, h = 24;
+  const int w = 48, h = 48;
   for (int d = 0; d < 4; d++) {
     double l[3], ln = sqrt(dot3(dirs[d], dirs[d]));
     for (int k = 0; k < 3; k++)
       l[k] = dirs[d][k] / ln, s.light.direction[k] = (float)l[k];
     float *img = render_f32(&s, w, h, LAYER_ALL);
     CHECK(img != NULL, "render failed");
-    double worst = 0, peak = 0;
+    double worst = 0, peak = 0, sum = 0;
+    int count = 0;
     for (int y = 0; img && y < h; y++)
       for (int x = 0; x < w; x++) {
         ray_t ray = pixel_ray(&s.camera, w, h, x, y);
@@ -999,12 +1004,17 @@ static void test_light_grid_oblique(void) {
         double got = img[4 * (y * w + x)], rel = fabs(got - want) / fmax(want, 1e-3);
         peak = fmax(peak, want);
         worst = fmax(worst, rel);
-        CHECK(rel < 0.035, "light [%.1f, %.1f, %.1f]: pixel (%d, %d) %.5f, exact %.5f", dirs[d][0],
+        if (want > 1e-3)
+          sum += rel, count++;
+        CHECK(rel < 0.08, "light [%.1f, %.1f, %.1f]: pixel (%d, %d) %.5f, exact %.5f", dirs[d][0],
               dirs[d][1], dirs[d][2], x, y, got, want);
       }
     CHECK(peak > 0.2, "the volume hardly shows (%.3f)", peak);
-    printf("uniform 32³ lit from [%.1f, %.1f, %.1f]: worst %.2f%% from the exact light\n",
-           dirs[d][0], dirs[d][1], dirs[d][2], 100 * worst);
+    CHECK(count > 0 && sum / count < 0.006, "light [%.1f, %.1f, %.1f]: mean error %.2f%%",
+          dirs[d][0], dirs[d][1], dirs[d][2], count ? 100 * sum / count : 0.0);
+    printf("uniform 32³ lit from [%.1f, %.1f, %.1f]: worst %.2f%% from the exact light, mean "
+           "%.2f%% over %d pixels\n",
+           dirs[d][0], dirs[d][1], dirs[d][2], 100 * worst, count ? 100 * sum / count : 0.0, count);
     free(img);
   }
   free_grid(g);
