@@ -121,9 +121,9 @@ static int check_volumes(const cJSON *doc, scene_error_t *err) {
         if (d[k] != floor(d[k]))
           return set_err(err, PROTO_E_INVALID_PARAMS, p, "%s: %g is not an integer", p, d[k]);
         if (d[k] > g_volume_side)
-          return set_err(err, PROTO_E_INVALID_PARAMS, p,
-                         "%s: %g voxels is over the limit of %u per side (cloud_side)", p, d[k],
-                         g_volume_side);
+          return set_err(err, PROTO_E_LIMIT, p,
+                         "%s: %g voxels is over the limit of %u per side (limits.cloud_side)", p,
+                         d[k], g_volume_side);
       }
     }
     const char *id = get(v, "id")->valuestring;
@@ -587,18 +587,19 @@ static int check_cloud(const cJSON *doc, scene_error_t *err) {
   double n[3];
   vec3d(get(cloud, "grid"), n);
   for (int i = 0; i < 3; i++) {
+    char p[32];
+    snprintf(p, sizeof p, "cloud.grid.%d", i);
     if (n[i] != floor(n[i]))
-      return set_err(err, PROTO_E_INVALID_PARAMS, "cloud.grid",
-                     "cloud.grid: %g is not a whole number of cells", n[i]);
+      return set_err(err, PROTO_E_INVALID_PARAMS, p, "%s: %g is not a whole number of cells", p,
+                     n[i]);
     /* A disabled cloud has no cells, so only an enabled one is held to the configured limit
      * (the default 64³ must not break every scene of a server with a smaller one); no side
      * may pass the largest limit a server can be given. */
     int enabled = cJSON_IsTrue(get(cloud, "enabled"));
     uint32_t limit = enabled ? g_cloud_side : CLOUD_MAX_SIDE;
     if (n[i] > limit)
-      return set_err(err, PROTO_E_LIMIT, "cloud.grid",
-                     "cloud.grid: %g cells is over the limit of %u per side (%s)", n[i], limit,
-                     enabled ? "limits.cloud_side" : "the most any server allows");
+      return set_err(err, PROTO_E_LIMIT, p, "%s: %g cells is over the limit of %u per side (%s)", p,
+                     n[i], limit, enabled ? "limits.cloud_side" : "the most any server allows");
   }
   /* The seeding steps are bounded so that one change cannot hold a thread for long. */
   double steps = get(get(cloud, "init"), "steps")->valuedouble;

@@ -723,7 +723,7 @@ static const sch_field_t volume_fields[] = {
              "server's cloud_side limit (server.info).",
      .unit = "voxels",
      .min = 1,
-     .max = 1 << 16,
+     .max = INFINITY, /* Checked against the limit by scene.c (-32003), published by discover. */
      .flags = SCH_NO_DEFAULT},
     {.name = "bounds",
      .type = SCH_OBJECT,

@@ -321,13 +321,13 @@ def bad_inputs(s):
     expect_error(s, c, "cloud.set_cells", dict(d, data=b64(bytes(4 * N - 4))), E_PARAMS, "data",
                  "a density short of one float")
     expect_error(s, c, "scene.set", {"scene": "bad", "patch": {"cloud": {"grid": [257, 8, 8]}}},
-                 E_LIMIT, "cloud.grid", "a grid over limits.cloud_side")
+                 E_LIMIT, "cloud.grid.0", "a grid over limits.cloud_side")
     for huge in (100000, 1e300):
         expect_error(s, c, "scene.set",
                      {"scene": "bad", "patch": {"cloud": {"grid": [1, 1, huge]}}},
-                     E_LIMIT, "cloud.grid", "a side of %g" % huge)
+                     E_LIMIT, "cloud.grid.2", "a side of %g" % huge)
     expect_error(s, c, "scene.set", {"scene": "bad", "patch": {"cloud": {"grid": [8.5, 8, 8]}}},
-                 E_PARAMS, "cloud.grid", "a fractional grid")
+                 E_PARAMS, "cloud.grid.0", "a fractional grid")
     expect_error(s, c, "scene.set", {"scene": "bad", "patch": {"cloud": {"grid": [0, 8, 8]}}},
                  E_PARAMS, "cloud.grid.0", "an empty grid")
     expect_error(s, c, "scene.set", {"scene": "bad", "patch": {"cloud": {"p_ext": 1.5}}},
@@ -349,10 +349,10 @@ def bad_inputs(s):
     # server allows (1024) at once.
     c.ok("scene.set", {"scene": "nocloud", "patch": {"cloud": {"grid": [300, 8, 8]}}})
     expect_error(s, c, "scene.set", {"scene": "nocloud", "path": "cloud.enabled", "value": True},
-                 E_LIMIT, "cloud.grid", "enabling a cloud whose grid is over the limit")
+                 E_LIMIT, "cloud.grid.0", "enabling a cloud whose grid is over the limit")
     expect_error(s, c, "scene.set",
                  {"scene": "nocloud", "patch": {"cloud": {"grid": [2000, 8, 8]}}},
-                 E_LIMIT, "cloud.grid", "a disabled cloud's side over 1024")
+                 E_LIMIT, "cloud.grid.0", "a disabled cloud's side over 1024")
     c.ok("scene.set", {"scene": "nocloud", "patch": {"cloud": {"grid": [64, 64, 64]}}})
     expect_error(s, c, "cloud.get_cells", {"scene": "nocloud", "field": "cld"}, E_PARAMS,
                  "scene", "get_cells without a cloud")
@@ -371,7 +371,7 @@ def grid_limit_config(s):
         make(c, "lim", grid=(16, 16, 16))
         expect_error(s, c, "scene.set",
                      {"scene": "lim", "path": "cloud.grid", "value": [81, 16, 16]}, E_LIMIT,
-                     "cloud.grid", "over a configured limit of 80")
+                     "cloud.grid.0", "over a configured limit of 80")
         s.eq(get(c, "lim", "cld")[0].get("dims"), [16, 16, 16], "the refused grid left the cells")
         # 80³ f32 is 2 MB, over an output limit of 1 MiB: one answer may pass it, whole.
         make(c, "big", grid=(80, 80, 80))
@@ -382,7 +382,7 @@ def grid_limit_config(s):
         c.ok("scene.set", {"scene": "lim", "patch": {"cloud": {"enabled": False,
                                                                "grid": [96, 16, 16]}}})
         expect_error(s, c, "scene.set", {"scene": "lim", "path": "cloud.enabled", "value": True},
-                     E_LIMIT, "cloud.grid", "enabling a cloud over the limit")
+                     E_LIMIT, "cloud.grid.0", "enabling a cloud over the limit")
         s.eq(c.ok("scene.get", {"scene": "lim", "path": "cloud.enabled"})[0], False,
              "the refused enable left the cloud disabled")
 

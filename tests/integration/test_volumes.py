@@ -17,7 +17,7 @@ import sys
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 import mock  # noqa: E402
-from mock import E_PARAMS, expect_error  # noqa: E402
+from mock import E_LIMIT, E_PARAMS, expect_error  # noqa: E402
 
 suite = mock.Suite("test_volumes", timeout_s=400)
 suite.server_args = []
@@ -106,9 +106,9 @@ def bad_volumes(s):
     c.ok("scene.set", {"scene": "bad", "patch": {"volumes": [good]}})
     doc = c.ok("scene.get", {"scene": "bad"})[0]
 
-    def refused(vol, path, what):
-        expect_error(s, c, "scene.set", {"scene": "bad", "patch": {"volumes": [good, vol]}},
-                     E_PARAMS, path, what)
+    def refused(vol, path, what, code=E_PARAMS):
+        return expect_error(s, c, "scene.set",
+                            {"scene": "bad", "patch": {"volumes": [good, vol]}}, code, path, what)
 
     write(s, "short.f32", f32([0.5] * 23))
     refused(dict(good, file="short.f32"), "volumes.1.file", "one float short of dims")
@@ -120,9 +120,12 @@ def bad_volumes(s):
     refused(dict(good, file="nan.f32"), "volumes.1.file", "a NaN density")
     write(s, "inf.f32", f32([0.5] * 23 + [float("inf")]))
     refused(dict(good, file="inf.f32"), "volumes.1.file", "an infinite density")
-    refused(dict(good, dims=[300, 1, 1]), "volumes.1.dims.0", "dims over cloud_side (256)")
+    refused(dict(good, dims=[300, 1, 1]), "volumes.1.dims.0", "dims over cloud_side (256)",
+            E_LIMIT)
     refused(dict(good, dims=[2.5, 3, 4]), "volumes.1.dims.0", "fractional dims")
-    refused(dict(good, dims=[0, 3, 4]), "volumes.1.dims.0", "zero dims")
+    r = refused(dict(good, dims=[0, 3, 4]), "volumes.1.dims.0", "zero dims")
+    msg = ((r or {}).get("error") or {}).get("message", "")
+    s.check("65536" not in msg, "the zero dims' message names no bound but this server's", msg)
     refused({"source": "file", "dims": [2, 3, 4]}, "volumes.1.file", "no file")
     refused({"source": "file", "file": "ok.f32"}, "volumes.1.dims", "no dims")
     refused(dict(good, file="../ok.f32"), "volumes.1.file", "a path out of the data directory")
@@ -159,7 +162,7 @@ def side_limit(s):
         c = srv.connect()
         before = c.ok("scene.get", {"scene": "main", "path": "volumes"})[0]
         vol = {"source": "file", "file": "g.f32", "dims": [9, 2, 2]}
-        expect_error(s, c, "scene.set", {"scene": "main", "patch": {"volumes": [vol]}}, E_PARAMS,
+        expect_error(s, c, "scene.set", {"scene": "main", "patch": {"volumes": [vol]}}, E_LIMIT,
                      "volumes.0.dims.0", "dims over a configured cloud_side of 8")
         s.eq(c.ok("scene.get", {"scene": "main", "path": "volumes"})[0], before,
              "the refused volume was not added")

@@ -463,10 +463,10 @@ static void test_scene_cloud(void) {
   gen = s->cloud_gen;
   unsigned long version = s->version;
   CHECK(patch(s, "{\"cloud\": {\"grid\": [300, 10, 8]}}", &err) != 0 && err.code == PROTO_E_LIMIT &&
-            strcmp(err.path, "cloud.grid") == 0,
+            strcmp(err.path, "cloud.grid.0") == 0,
         "a grid over the limit: code %d path '%s'", err.code, err.path);
   CHECK(patch(s, "{\"cloud\": {\"grid\": [20.5, 10, 8]}}", &err) != 0 &&
-            err.code == PROTO_E_INVALID_PARAMS && strcmp(err.path, "cloud.grid") == 0,
+            err.code == PROTO_E_INVALID_PARAMS && strcmp(err.path, "cloud.grid.0") == 0,
         "a fractional grid: code %d path '%s'", err.code, err.path);
   CHECK(s->cloud_cells == cells && s->cloud_gen == gen && s->version == version,
         "refused patches change nothing");
