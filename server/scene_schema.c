@@ -12,8 +12,10 @@
 
 #include <math.h>
 
-#define WORLD 1e6                 /* Largest world coordinate accepted. */
-#define TWO_53 9007199254740992.0 /* 2^53: every integer up to here is exact in a double. */
+#define WORLD 1e6 /* Largest world coordinate accepted. */
+/* 2^53 - 1, the largest n for which n and n + 1 are both exact doubles: the bound of seeds and
+ * frame counts, as of request ids. */
+#define MAX_SAFE 9007199254740991.0
 
 static const double v_zero[3] = {0, 0, 0};
 static const double v_one[3] = {1, 1, 1};
@@ -357,7 +359,7 @@ static const sch_field_t sim_fields[] = {
      .type = SCH_INTEGER,
      .desc = "Number of simulation steps taken.",
      .min = 0,
-     .max = TWO_53},
+     .max = MAX_SAFE},
     {.name = "dt",
      .type = SCH_NUMBER,
      .desc = "Length of one simulation step.",
@@ -373,7 +375,7 @@ static const sch_field_t sim_fields[] = {
      .type = SCH_INTEGER,
      .desc = "Seed of every random choice the simulations make.",
      .min = 0,
-     .max = TWO_53},
+     .max = MAX_SAFE},
     {0},
 };
 
@@ -912,7 +914,7 @@ static const sch_field_t cloud_fields[] = {
      .type = SCH_INTEGER,
      .desc = "Seed of the initial cells and of the dobashi draws; changing it seeds fresh cells.",
      .min = 0,
-     .max = TWO_53,
+     .max = MAX_SAFE,
      .def = 1},
     {.name = "steps_per_frame",
      .type = SCH_INTEGER,

@@ -243,6 +243,9 @@ def scene_set(s):
          "an exposure of 0.30000000000000004 reads back exactly")
     s.eq(c.ok("scene.get", {"scene": "s1", "path": "sim.seed"})[0], 9007199254740991,
          "a seed of 2^53 - 1 reads back exactly")
+    for path in ("sim.seed", "cloud.seed", "sim.frame"):
+        expect_error(s, c, "scene.set", {"scene": "s1", "path": path, "value": 9007199254740992},
+                     E_PARAMS, path, "%s of 2^53, past the ids' bound too" % path)
     c.ok("scene.set", {"scene": "s1", "patch": {"render": {"exposure": 0}, "sim": {"seed": 0}}})
     resp = expect_error(s, c, "scene.create", {"name": "s9", "preset": "nope"}, E_NOT_FOUND,
                         "preset", "an unknown preset")
