@@ -67,10 +67,6 @@ typedef struct vfx_shadow {
   float bias;      /* A point counts as lit up to this far behind the stored depth. */
   int size;
   int enabled;
-  /* render.antialias n of the frame (1 without): the shadow tests of the pixels of each n x n
-   * block are moved along their segments by n² different fractions of the tests' spacing, so
-   * that the resolve's mean takes n² times as many (interleaved sampling). */
-  int interleave;
 } vfx_shadow_t;
 
 /* Texels a shadow-map work-item renders, one per lane (a float16). */

@@ -6,7 +6,8 @@
  * - per volume, its density grid (a density_grid_t as given, or the procedural noise baked
  *   into a grid on the host), a light grid holding the transmittance from each voxel towards
  *   the light through the volume (one sweep across the grid, slice by slice from the light's
- *   side), both interleaved in x-pairs as the kernel reads them (volume.h), and the tight box
+ *   side), both interleaved, a (density, light) pair a voxel, as the kernel reads them (volume.h),
+ *   and the tight box
  *   where the density can be non-zero. These are cached per volume and
  *   rebuilt only when the volume, its grid or the light changes, so a still scene uploads
  *   nothing;
@@ -25,10 +26,10 @@
 #include "render_internal.h"
 #include "../kernels/volume.h"
 
-#define NOISE_MAX_SIDE 96 /* Largest side of a baked noise grid. */
-#define NOISE_PER_SCALE 8 /* Baked voxels per noise_scale. */
-#define NOISE_OCTAVES 4   /* fBm octaves of the value noise. */
-#define NOISE_FADE 0.15   /* Noise volumes fade to zero over this fraction of the box. */
+#define NOISE_MAX_SIDE 96  /* Largest side of a baked noise grid. */
+#define NOISE_PER_SCALE 16 /* Baked voxels per noise_scale. */
+#define NOISE_OCTAVES 4    /* fBm octaves of the value noise. */
+#define NOISE_FADE 0.15    /* Noise volumes fade to zero over this fraction of the box. */
 
 /* One volume's prepared data, keyed by everything it was made from. */
 typedef struct vol_entry {
@@ -1181,8 +1182,6 @@ int render_pass_volumes(renderer_t *r, const render_scene_t *scene, unsigned lay
     if ((rc = render_shadow(r, vs, &sh, err, errlen)) != 0)
       goto done;
   }
-  /* After the shadow map's cache key was taken: the map does not depend on it. */
-  sh.interleave = r->antialias > 1 ? r->antialias : 1;
   cl_mem smap = sh.enabled ? vs->smap : vs->data;
   cl_int spitch = sh.enabled ? vs->smap_pitch : 0;
   /* The objects work-group's pixels, or fewer if the device shrank it below one packet. */

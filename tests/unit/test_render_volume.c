@@ -550,12 +550,13 @@ static void test_shadow_staircase(void) {
 }
 
 /*
- * render.antialias and the shadow tests: fog under a slatted roof, a ball inside it, seen across
- * the shafts with few samples per ray. At antialias 2 the four sub-pixels of a pixel move their
- * shadow tests by different fractions of the tests' spacing, so the frame differs from the mean
- * of a plain frame of twice the size (the same rays, the tests in place), and it is no farther
- * from the frame with 16 times the samples. (Their difference is the faint rings that the
- * tests' steps draw on the ball, which the eye sees better than the rms does.)
+ * Interleaved shadow tests: fog under a slatted roof, a ball inside it, seen across the shafts
+ * with few samples per ray. The pixels of each 4 x 4 tile move their shadow tests by different
+ * sixteenths of the tests' spacing, so that the error of the tests' steps over shaft edges
+ * differs from pixel to pixel instead of drawing rings that follow the depth: against the frame
+ * with 16 times the samples, the means of 4 x 4 tiles are much closer than single pixels (with
+ * the tests in place in every pixel they were as far). And render.antialias 2 is the mean of
+ * the frame drawn twice as large.
  */
 static void test_interleaved_shadows(void) {
   density_grid_t *g = make_grid(1, 1, 1);
@@ -567,20 +568,16 @@ static void test_interleaved_shadows(void) {
                  .albedo = {1, 1, 1},
                  .samples = 16,
                  .grid = g};
-  robject_t slats[6];
-  slats[5] = (robject_t){.shape = SHAPE_SPHERE,
-                         .position = {-1.2f, 0.9f, -0.2f},
-                         .scale = {1.6f, 1.6f, 1.6f},
-                         .color = {0.8f, 0.4f, 0.3f}};
-  for (int i = 0; i < 5; i++)
-    slats[i] = (robject_t){.shape = SHAPE_BOX,
-                           .position = {0, 2.6f, -1.6f + 0.8f * i},
-                           .scale = {6, 0.1f, 0.4f},
-                           .color = {0.5f, 0.5f, 0.5f}};
-  rcamera_t cam = {.eye = {3.5f, 0.8f, 0.4f},
-                   .target = {-1, 1.2f, -0.2f},
+  /* A roof over x < 0: one straight shadow edge, a plane through the fog that every ray of the
+   * narrow view crosses once, at nearly the same place in its segments as its neighbours. */
+  robject_t roof = {.shape = SHAPE_BOX,
+                    .position = {-3, 2.6f, 0},
+                    .scale = {6, 0.1f, 8},
+                    .color = {0.5f, 0.5f, 0.5f}};
+  rcamera_t cam = {.eye = {2.5f, 1, 4.5f},
+                   .target = {-0.5f, 1, -1},
                    .up = {0, 1, 0},
-                   .fov_y = 45,
+                   .fov_y = 4,
                    .near_ = 0.05f,
                    .far_ = 100};
   render_scene_t s = bare_scene(cam);
@@ -589,34 +586,59 @@ static void test_interleaved_shadows(void) {
     s.light.direction[k] = (float)(l[k] / ln);
   s.light.intensity = 1;
   s.light.shadow_map = 512;
-  s.objects = slats, s.nobjects = 6;
+  s.objects = &roof, s.nobjects = 1;
   s.volumes = &v, s.nvolumes = 1;
-  const int w = 48, h = 48;
+  const int w = 64, h = 64;
+  float *plain = render_f32(&s, w, h, LAYER_ALL);
   s.antialias = 2;
   float *aa = render_f32(&s, w, h, LAYER_ALL);
-  v.samples = 256;
-  float *ref = render_f32(&s, w, h, LAYER_ALL);
-  v.samples = 16;
   s.antialias = 1;
   float *big = render_f32(&s, 2 * w, 2 * h, LAYER_ALL);
-  CHECK(aa && ref && big, "render failed");
-  double e_aa = 0, e_plain = 0, moved = 0;
-  for (int y = 0; aa && ref && big && y < h; y++)
+  v.samples = 256;
+  float *ref = render_f32(&s, w, h, LAYER_ALL);
+  /* The same without the roof: the difference is the shadow's part alone. */
+  s.nobjects = 0;
+  float *ref0 = render_f32(&s, w, h, LAYER_ALL);
+  v.samples = 16;
+  float *plain0 = render_f32(&s, w, h, LAYER_ALL);
+  s.nobjects = 1;
+  CHECK(plain && aa && ref && big && ref0 && plain0, "render failed");
+  /* The error of single pixels against the 256-sample frame, and that of the means of 4 x 4
+   * tiles: where neighbours make the same error (rings), the tiles' is as large. */
+  double e_px = 0, e_tile = 0, off = 0;
+  for (int y = 0; plain && ref && ref0 && plain0 && y < h; y++)
     for (int x = 0; x < w; x++) {
       int i = 4 * (y * w + x);
+      e_px += pow((plain[i] - plain0[i]) - (ref[i] - ref0[i]), 2);
+    }
+  for (int ty = 0; plain && ref && ref0 && plain0 && ty < h / 4; ty++)
+    for (int tx = 0; tx < w / 4; tx++) {
+      double d = 0;
+      for (int y = 4 * ty; y < 4 * ty + 4; y++)
+        for (int x = 4 * tx; x < 4 * tx + 4; x++)
+          d += ((plain[4 * (y * w + x)] - plain0[4 * (y * w + x)]) -
+                (ref[4 * (y * w + x)] - ref0[4 * (y * w + x)])) /
+               16;
+      e_tile += d * d;
+    }
+  e_px = sqrt(e_px / (w * h)), e_tile = sqrt(e_tile / (w * h / 16));
+  CHECK(e_px > 1e-4, "the 16-sample frame shows no shaft error to test (%.2g)", e_px);
+  CHECK(e_tile < 0.35 * e_px, "4 x 4 tiles %.5f rms from 256 samples, single pixels %.5f", e_tile,
+        e_px);
+  /* Antialiasing by n is the mean of the frame drawn n times as large, interleaving included. */
+  for (int y = 0; aa && big && y < h; y++)
+    for (int x = 0; x < w; x++) {
       double mean = 0;
       for (int sy = 0; sy < 2; sy++)
         for (int sx = 0; sx < 2; sx++)
           mean += big[4 * ((2 * y + sy) * 2 * w + 2 * x + sx)] / 4;
-      e_aa += pow(aa[i] - ref[i], 2), e_plain += pow(mean - ref[i], 2);
-      moved = fmax(moved, fabs(aa[i] - mean));
+      off = fmax(off, fabs(aa[4 * (y * w + x)] - mean));
     }
-  e_aa = sqrt(e_aa / (w * h)), e_plain = sqrt(e_plain / (w * h));
-  CHECK(moved > 1e-4, "the sub-pixels' shadow tests are not interleaved (%.2g)", moved);
-  CHECK(e_aa <= e_plain, "interleaved: %.5f rms from 256 samples, the plain mean %.5f", e_aa,
-        e_plain);
-  printf("interleaved shadow tests: %.5f rms from the 256-sample frame, the plain mean %.5f\n",
-         e_aa, e_plain);
+  CHECK(off < 1e-5, "antialias 2 is %.2g from the mean of the frame twice as large", off);
+  printf("interleaved shadow tests: single pixels %.5f rms from the 256-sample frame, 4 x 4 "
+         "tiles %.5f\n",
+         e_px, e_tile);
+  free(plain), free(plain0), free(ref0);
   free(aa), free(ref), free(big);
   free_grid(g);
 }
