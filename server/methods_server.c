@@ -6,6 +6,7 @@
 
 #include "dispatch.h"
 #include "jobs.h"
+#include "reclaim.h"
 #include "frames.h"
 #include "worker.h"
 
@@ -92,6 +93,7 @@ static void stats(call_t *call) {
   cJSON *mem = cJSON_AddObjectToObject(r, "memory");
   cJSON_AddNumberToObject(mem, "rss_bytes", (double)stats_rss_bytes());
   cJSON_AddNumberToObject(mem, "output_queued_bytes", (double)queued);
+  cJSON_AddNumberToObject(mem, "kept_bytes", (double)reclaim_kept_bytes());
   call_result(call, r);
 }
 
@@ -145,7 +147,7 @@ const method_t method_stats = {
     .summary = "Per-pass render times, frame rate, queue depths, connections and memory.",
     .params = &(sch_field_t){.type = SCH_OBJECT, .fields = no_params},
     .result = "{uptime_s, connections, requests, errors, frames_rendered, fps, render_queue, "
-              "subscriptions, passes, memory {rss_bytes, output_queued_bytes}}",
+              "subscriptions, passes, memory {rss_bytes, output_queued_bytes, kept_bytes}}",
     .errors = common_errors,
     .handler = stats};
 

@@ -222,3 +222,10 @@ size_t reclaim_reused(void) {
   pthread_mutex_unlock(&g_lock);
   return n;
 }
+
+size_t reclaim_kept_bytes(void) {
+  pthread_mutex_lock(&g_lock);
+  size_t n = g_kept_bytes;
+  pthread_mutex_unlock(&g_lock);
+  return n;
+}

@@ -43,5 +43,7 @@ void *reclaim_alloc(size_t bytes);
  * by reclaim_alloc (for tests and stats). */
 size_t reclaim_handed(void);
 size_t reclaim_reused(void);
+/* Bytes of the blocks kept for reuse now (stats). */
+size_t reclaim_kept_bytes(void);
 
 #endif

@@ -251,6 +251,23 @@ def metaball_radius_applies_at_once(s):
 
 
 @T
+def freed_grids_kept_a_second(s):
+    """A step's big blocks (density, blend, scratch) are kept for reuse by the next steps and
+    freed a second after the last one (stats memory.kept_bytes)."""
+    c = s.srv.connect()
+    make(c, "kept", grid=(96, 96, 96), smoothing=0.5, rules="dobashi")
+    for _ in range(4):
+        c.ok("sim.step", {"scene": "kept"}, timeout=60)
+    kept = c.ok("stats", {})[0]["memory"]["kept_bytes"]
+    s.check(kept >= 2 * 4 * 96 ** 3, "stepping keeps the freed grids", kept)
+    deadline = time.time() + 5
+    while kept and time.time() < deadline:
+        time.sleep(0.25)
+        kept = c.ok("stats", {})[0]["memory"]["kept_bytes"]
+    s.eq(kept, 0, "and frees them once they have not been reused for a second")
+
+
+@T
 def smoothing_per_step(s):
     """A growing Dobashi cloud shows the same density after one sim.step of n steps as after n
     calls of one step, with steps_per_frame 1 and 2: exactly while every step's density counts,

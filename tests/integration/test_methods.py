@@ -839,6 +839,8 @@ def stats(s):
     s.check(is_num(mem.get("rss_bytes")) and rss and 0.5 * rss <= mem["rss_bytes"] <= 2 * rss,
             "stats memory.rss_bytes close to /proc VmRSS", "%s vs %s" % (mem.get("rss_bytes"), rss))
     s.check(is_num(mem.get("output_queued_bytes")), "stats memory.output_queued_bytes", short(mem))
+    s.check(is_num(mem.get("kept_bytes")) and 0 <= mem["kept_bytes"] <= 320 << 20,
+            "stats memory.kept_bytes within the reclaimer's bound", short(mem))
 
 
 @T
