@@ -1229,8 +1229,19 @@ void scene_advance(scene_t *s, unsigned steps, double dt) {
   const sch_field_t *ff = sch_path_field(&scene_schema, "sim.frame");
   cJSON *sim = get(s->doc, "sim");
   cJSON *jt = get(sim, "time"), *jf = get(sim, "frame");
-  double t = fmin(jt->valuedouble + steps * dt, ft->max);
-  double f = fmin(jf->valuedouble + steps, ff->max);
+  /* The time is the base's plus the frames since it times dt, not a sum of steps, so that it
+   * does not depend on how the steps were grouped into calls or ticks. The base is where this
+   * clock last left it, while dt, time and frame are as it wrote them; else 0 when the time is
+   * the frame times dt (a fresh scene, or a snapshot of one); else the time and frame now. */
+  double t0 = jt->valuedouble, f0 = jf->valuedouble;
+  if (!(s->clock.valid && s->clock.dt == dt && s->clock.time == t0 && s->clock.frame == f0)) {
+    int from_zero = t0 == f0 * dt;
+    s->clock.base_time = from_zero ? 0 : t0;
+    s->clock.base_frame = from_zero ? 0 : f0;
+  }
+  double f = fmin(f0 + steps, ff->max);
+  double t = fmin(s->clock.base_time + (f - s->clock.base_frame) * dt, ft->max);
+  s->clock.valid = 1, s->clock.dt = dt, s->clock.time = t, s->clock.frame = f;
   cJSON_SetNumberValue(jt, t);
   cJSON_SetNumberValue(jf, f);
   const sch_field_t *wf = wave_fields();

@@ -58,6 +58,12 @@ typedef struct scene {
   uint64_t cloud_gen;        /* Unique among all scenes; changes when the cells are replaced
                                 (seeded, set by a client, loaded), not when stepped. */
   cloud_link_t *cloud_chain; /* The last cloud job in flight, or NULL. */
+  /* The clock's base (scene_advance): sim.time is base_time + (frame - base_frame) * dt for
+   * the dt and the time and frame it last wrote ('valid' once it has). */
+  struct {
+    int valid;
+    double dt, time, frame, base_time, base_frame;
+  } clock;
 } scene_t;
 
 typedef struct scene_error {

@@ -369,6 +369,24 @@ def sim_step(s):
         expect_error(s, c, "sim.step", p, E_PARAMS, path, "sim.step %s" % short(bad))
     expect_error(s, c, "sim.step", {"scene": "nope"}, E_NOT_FOUND, "scene", "sim.step unknown scene")
     c.ok("scene.delete", {"name": "clk"})
+    # The clock does not depend on how the steps are grouped: 199 steps of 0.03 s, one at a
+    # time, in one call, or over a snapshot, all read 199 * 0.03 (a sum of 199 steps would
+    # read 5.970000000000005).
+    times = []
+    for n, grouping in enumerate(([1] * 199, [199], [50, 100, 49], [120, "save", 79])):
+        name = "g%d" % n
+        c.ok("scene.create", {"name": name})
+        c.ok("scene.set", {"scene": name, "path": "sim.dt", "value": 0.03})
+        for k in grouping:
+            if k == "save":
+                c.ok("scene.save", {"scene": name, "file": "clock.vfx"})
+                c.ok("scene.load", {"scene": name, "file": "clock.vfx"})
+            else:
+                c.ok("sim.step", {"scene": name, "steps": k})
+        times.append(c.ok("scene.get", {"scene": name, "path": "sim.time"})[0])
+        c.ok("scene.delete", {"name": name})
+    s.check(times == [199 * 0.03] * 4, "the clock reads 199 * 0.03 however the steps were grouped",
+            times)
 
 
 @T
