@@ -86,6 +86,22 @@ static inline vf vol_exp_neg(vf x) {
 }
 
 /*
+ * 1 - exp(-x) for finite x >= 0, a segment's opacity, to under 1e-6 relative: below 1/8 from
+ * its series, since 1 - vol_exp_neg(x) loses the digits there (about 1e-7 / x relative: 0.65%
+ * of a thin slab's light at 1024 samples per ray, where more samples should only do better).
+ * The series to x^6 leaves x^7 / 5040 out, below 1e-9 of x there; above, the difference is
+ * within 5e-7 relative.
+ */
+static inline vf vol_opacity(vf x) {
+  vf s = fma(x, -1.0f / 720.0f, 1.0f / 120.0f);
+  s = fma(s, x, -1.0f / 24.0f);
+  s = fma(s, x, 1.0f / 6.0f);
+  s = fma(s, x, -0.5f);
+  s = fma(s, x, 1.0f);
+  return select(1.0f - vol_exp_neg(x), s * x, x < 0.125f);
+}
+
+/*
  * The trilinear interpolation of the density (*d) and light (*l) of grid 'g' (n[0] x n[1] x
  * n[2]) at grid coordinates (x, y, z), in which voxel i's centre is at i. For the density the
  * coordinates are clamped to the centres of the edge voxels, so the edge values extend to the
@@ -316,7 +332,9 @@ __kernel void volumes(vfx_frame_t f, vfx_shadow_t sh, __global const float *rest
     or_ = nx * sv[0] + ny * sv[1] + nz * sv[2];
   }
 
-  vf tr = 1.0f, cr = 0.0f, cg = 0.0f, cb = 0.0f;
+  /* trc: what rounding took from tr (compensated summation): near 1, tr's last bit is 6e-8,
+   * and over a thousand thin segments the rounding of tr -= w added up to 3e-5. */
+  vf tr = 1.0f, trc = 0.0f, cr = 0.0f, cg = 0.0f, cb = 0.0f;
   for (int v = 0; v < nvol; v++) {
     __global const float *rec = vols + v * VOL_STRIDE;
     /* The rays' interval inside the tight box, clipped to [near, opaque depth]. */
@@ -374,11 +392,13 @@ __kernel void volumes(vfx_frame_t f, vfx_shadow_t sh, __global const float *rest
         vf dw = dx * sh.w[0] + dy * sh.w[1] + dz * sh.w[2];
         direct *= vol_shadow(smap, smap_pitch, &sh, t, dt, tphase, s0, ds, r0, dr, z0, dw, os, or_);
       }
-      vf w = tr * (1.0f - vol_exp_neg(sig * dt));
+      vf w = tr * vol_opacity(sig * dt);
       cr += w * fma(lr, direct, ar);
       cg += w * fma(lg, direct, ag);
       cb += w * fma(lb, direct, ab);
-      tr -= w;
+      vf y = -w - trc, tn = tr + y;
+      trc = (tn - tr) - y;
+      tr = tn;
       if (all((tr <= VOL_T_MIN) | ~act))
         break;
     }

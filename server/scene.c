@@ -74,6 +74,17 @@ static void vec3f(const cJSON *a, float out[3]) {
 
 /* ---- Volume files ---- */
 
+/* 'v' as the shortest decimal that reads back as it (sch_format_number), for a message. */
+typedef struct {
+  char s[32];
+} num_text_t;
+
+static num_text_t num_text(double v) {
+  num_text_t t;
+  sch_format_number(t.s, sizeof t.s, v);
+  return t;
+}
+
 static uint32_t g_volume_side = 256; /* Largest side of a volume file's grid (cloud_side). */
 
 void scene_set_volume_limit(uint32_t side) {
@@ -119,7 +130,8 @@ static int check_volumes(const cJSON *doc, scene_error_t *err) {
       for (int k = 0; k < 3; k++) {
         snprintf(p, sizeof p, "volumes.%d.dims.%d", i, k);
         if (d[k] != floor(d[k]))
-          return set_err(err, PROTO_E_INVALID_PARAMS, p, "%s: %g is not an integer", p, d[k]);
+          return set_err(err, PROTO_E_INVALID_PARAMS, p, "%s: %s is not an integer", p,
+                         num_text(d[k]).s);
         if (d[k] > g_volume_side)
           return set_err(err, PROTO_E_LIMIT, p,
                          "%s: %g voxels is over the limit of %u per side (limits.cloud_side)", p,
@@ -590,8 +602,8 @@ static int check_cloud(const cJSON *doc, scene_error_t *err) {
     char p[32];
     snprintf(p, sizeof p, "cloud.grid.%d", i);
     if (n[i] != floor(n[i]))
-      return set_err(err, PROTO_E_INVALID_PARAMS, p, "%s: %g is not a whole number of cells", p,
-                     n[i]);
+      return set_err(err, PROTO_E_INVALID_PARAMS, p, "%s: %s is not a whole number of cells", p,
+                     num_text(n[i]).s);
     /* A disabled cloud has no cells, so only an enabled one is held to the configured limit
      * (the default 64³ must not break every scene of a server with a smaller one); no side
      * may pass the largest limit a server can be given. */

@@ -26,7 +26,7 @@ static int has_range(const sch_field_t *f) {
 
 /* Writes 'v' as the shortest decimal that reads back as the same double, so messages show
  * "0.1" rather than "0.10000000000000001" and "500" rather than "500.000000". */
-static void fmt_num(char *buf, size_t len, double v) {
+void sch_format_number(char *buf, size_t len, double v) {
   if (isnan(v)) {
     snprintf(buf, len, "NaN");
     return;
@@ -119,11 +119,11 @@ static int check_number(const sch_field_t *f, double v, const char *path, sch_er
   /* cJSON never parses NaN or Inf from JSON text, but a value built in C can hold either, and
    * no such number may reach a kernel. */
   if (!isfinite(v)) {
-    fmt_num(a, sizeof a, v);
+    sch_format_number(a, sizeof a, v);
     return fail(err, path, "%s is not a finite number", a);
   }
   if (f->type == SCH_INTEGER && v != floor(v)) {
-    fmt_num(a, sizeof a, v);
+    sch_format_number(a, sizeof a, v);
     return fail(err, path, "%s is not an integer", a);
   }
   if (!has_range(f))
@@ -132,9 +132,9 @@ static int check_number(const sch_field_t *f, double v, const char *path, sch_er
   int above = !(v <= f->max);
   if (!below && !above)
     return 0;
-  fmt_num(a, sizeof a, v);
-  fmt_num(lo, sizeof lo, f->min);
-  fmt_num(hi, sizeof hi, f->max);
+  sch_format_number(a, sizeof a, v);
+  sch_format_number(lo, sizeof lo, f->min);
+  sch_format_number(hi, sizeof hi, f->max);
   const char *u0 = f->unit ? " (" : "", *u = f->unit ? f->unit : "", *u1 = f->unit ? ")" : "";
   /* A bound left open (a limit the server applies later, such as limits.frame_side) is not
    * printed as an infinity. */

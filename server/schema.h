@@ -70,4 +70,8 @@ cJSON *sch_path_get(cJSON *root, const char *path);
 /* The field description at a dotted path, or NULL. */
 const sch_field_t *sch_path_field(const sch_field_t *root, const char *path);
 
+/* Writes 'v' as the shortest decimal that reads back as the same double ("0.1", "500",
+ * "16.000001"), for messages. */
+void sch_format_number(char *buf, size_t len, double v);
+
 #endif

@@ -345,6 +345,11 @@ def bad_inputs(s):
                      E_LIMIT, "cloud.grid.2", "a side of %g" % huge)
     expect_error(s, c, "scene.set", {"scene": "bad", "patch": {"cloud": {"grid": [8.5, 8, 8]}}},
                  E_PARAMS, "cloud.grid.0", "a fractional grid")
+    r = expect_error(s, c, "scene.set",
+                     {"scene": "bad", "patch": {"cloud": {"grid": [8, 16.000001, 8]}}},
+                     E_PARAMS, "cloud.grid.1", "a side just off a whole number")
+    msg = ((r or {}).get("error") or {}).get("message", "")
+    s.check("16.000001" in msg, "the message shows the side as given", msg)
     expect_error(s, c, "scene.set", {"scene": "bad", "patch": {"cloud": {"grid": [0, 8, 8]}}},
                  E_PARAMS, "cloud.grid.0", "an empty grid")
     expect_error(s, c, "scene.set", {"scene": "bad", "patch": {"cloud": {"p_ext": 1.5}}},

@@ -165,6 +165,26 @@ static void test_transmittance(void) {
   printf("transmittance: %d pixels in the volume, worst error %.2g\n", inside, worst);
   free(img);
 
+  /* Thin segments: many samples of a thin medium make each segment's opacity 1 - exp(-x) tiny,
+   * where computing it as 1 minus the exponential loses its digits (up to 2% of the light was
+   * lost that way at 1024 samples). More samples may only do as well. */
+  v.samples = 1024, v.density = 0.05f;
+  img = render_f32(&s, w, h, LAYER_ALL);
+  CHECK(img != NULL, "render failed");
+  worst = 0;
+  for (int y = 0; img && y < h; y++)
+    for (int x = 0; x < w; x++) {
+      ray_t ray = pixel_ray(&s.camera, w, h, x, y);
+      double want = fog_exact(&ray, &v, NULL, &on, &in_fog, &graze);
+      double got = img[4 * (y * w + x)], rel = fabs(got - want) / fmax(1 - want, 1e-3);
+      worst = fmax(worst, rel);
+      CHECK(rel < 2e-4, "1024 samples, pixel (%d, %d): %.7f, exact %.7f", x, y, got, want);
+    }
+  printf("transmittance at 1024 samples of density 0.05: worst %.2g of the light absorbed\n",
+         worst);
+  free(img);
+  v = fog_block(g);
+
   /* An opaque box inside the volume, lit only by the ambient term: colour c, seen through the
    * volume from where the ray enters to the box's surface. */
   robject_t box = fog_box;
