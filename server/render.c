@@ -48,13 +48,8 @@ static int pass_tonemap(renderer_t *r, const render_scene_t *scene, char *err, s
   cl_float scale;
   render_tone_args(scene, &scale, &op);
   cl_kernel k = r->tonemap;
-  cl_int cr = clSetKernelArg(k, 0, sizeof(cl_mem), &r->linear);
-  if (cr == CL_SUCCESS)
-    cr = clSetKernelArg(k, 1, sizeof(cl_mem), &r->rgba8);
-  if (cr == CL_SUCCESS)
-    cr = clSetKernelArg(k, 2, sizeof scale, &scale);
-  if (cr == CL_SUCCESS)
-    cr = clSetKernelArg(k, 3, sizeof op, &op);
+  cl_int cr = KERNEL_ARGS(CL_SUCCESS, k, 0, {sizeof(cl_mem), &r->linear},
+                          {sizeof(cl_mem), &r->rgba8}, {sizeof scale, &scale}, {sizeof op, &op});
   size_t global[2] = {r->pitch / TONEMAP_PACKET, r->rows};
   if (cr == CL_SUCCESS)
     cr = clEnqueueNDRangeKernel(r->dev.queue, k, 2, NULL, global, r->tonemap_local, 0, NULL, NULL);

@@ -239,18 +239,9 @@ int render_pass_fluid(renderer_t *r, const render_scene_t *scene, int *ran, char
   if (cr == CL_SUCCESS)
     cr = clEnqueueWriteBuffer(r->dev.queue, r->fluid_pos, CL_FALSE, 0,
                               3 * (size_t)fl.entries * sizeof(float), r->host_fpos, 0, NULL, NULL);
-  if (cr == CL_SUCCESS)
-    cr = clSetKernelArg(k, 0, sizeof r->frame, &r->frame);
-  if (cr == CL_SUCCESS)
-    cr = clSetKernelArg(k, 1, sizeof fl, &fl);
-  if (cr == CL_SUCCESS)
-    cr = clSetKernelArg(k, 2, sizeof(cl_mem), &r->fluid_cells);
-  if (cr == CL_SUCCESS)
-    cr = clSetKernelArg(k, 3, sizeof(cl_mem), &r->fluid_pos);
-  if (cr == CL_SUCCESS)
-    cr = clSetKernelArg(k, 4, sizeof(cl_mem), &r->linear);
-  if (cr == CL_SUCCESS)
-    cr = clSetKernelArg(k, 5, sizeof(cl_mem), &r->depth);
+  cr = KERNEL_ARGS(cr, k, 0, {sizeof r->frame, &r->frame}, {sizeof fl, &fl},
+                   {sizeof(cl_mem), &r->fluid_cells}, {sizeof(cl_mem), &r->fluid_pos},
+                   {sizeof(cl_mem), &r->linear}, {sizeof(cl_mem), &r->depth});
   /* A work-item per packet of FLUID_PW x FLUID_PH pixels; packets past the buffers' rows and
    * pitch are not traced. */
   size_t global[2] = {round_up(round_up(r->pitch, FLUID_PW) / FLUID_PW, r->fluid_local[0]),

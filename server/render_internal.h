@@ -113,6 +113,26 @@ static inline size_t round_up(size_t n, size_t m) {
   return (n + m - 1) / m * m;
 }
 
+/* One kernel argument: its size and where its value lies, as clSetKernelArg takes them. */
+typedef struct kernel_arg {
+  size_t size;
+  const void *value;
+} kernel_arg_t;
+
+/* Sets the arguments first, first + 1, ... of 'k' to the n of 'args' while 'cr' is CL_SUCCESS.
+ * Returns the first failure, 'cr' if it was one, or CL_SUCCESS. */
+static inline cl_int set_kernel_args(cl_int cr, cl_kernel k, cl_uint first,
+                                     const kernel_arg_t *args, size_t n) {
+  for (size_t i = 0; i < n && cr == CL_SUCCESS; i++)
+    cr = clSetKernelArg(k, first + (cl_uint)i, args[i].size, args[i].value);
+  return cr;
+}
+
+/* set_kernel_args with the arguments listed as {size, pointer} pairs. */
+#define KERNEL_ARGS(cr, k, first, ...)                                                             \
+  set_kernel_args((cr), (k), (first), (const kernel_arg_t[]){__VA_ARGS__},                         \
+                  sizeof((const kernel_arg_t[]){__VA_ARGS__}) / sizeof(kernel_arg_t))
+
 /* Grows the int32 or float staging array '*p' to 'need' elements. Returns 0, or -1. */
 static inline int grow_staging(void **p, size_t *cap, size_t need, size_t size) {
   if (need <= *cap)

@@ -639,18 +639,9 @@ int render_pass_objects(renderer_t *r, const render_scene_t *scene, const render
   cl_int cr = clEnqueueWriteBuffer(r->dev.queue, r->objs, CL_FALSE, 0, nobj * sizeof(float),
                                    r->host_objs, 0, NULL, NULL);
   cl_kernel k = r->objects;
-  if (cr == CL_SUCCESS)
-    cr = clSetKernelArg(k, 0, sizeof f, &f);
-  if (cr == CL_SUCCESS)
-    cr = clSetKernelArg(k, 1, sizeof(cl_mem), &r->objs);
-  if (cr == CL_SUCCESS)
-    cr = clSetKernelArg(k, 2, sizeof(cl_mem), &r->nodes);
-  if (cr == CL_SUCCESS)
-    cr = clSetKernelArg(k, 3, sizeof(cl_mem), &r->tris);
-  if (cr == CL_SUCCESS)
-    cr = clSetKernelArg(k, 4, sizeof(cl_mem), &r->linear);
-  if (cr == CL_SUCCESS)
-    cr = clSetKernelArg(k, 5, sizeof(cl_mem), &r->depth);
+  cr = KERNEL_ARGS(cr, k, 0, {sizeof f, &f}, {sizeof(cl_mem), &r->objs},
+                   {sizeof(cl_mem), &r->nodes}, {sizeof(cl_mem), &r->tris},
+                   {sizeof(cl_mem), &r->linear}, {sizeof(cl_mem), &r->depth});
   size_t global[2] = {r->pitch / PACKET, r->rows};
   if (cr == CL_SUCCESS)
     cr = clEnqueueNDRangeKernel(r->dev.queue, k, 2, NULL, global, r->objects_local, 0, NULL, NULL);

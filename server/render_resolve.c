@@ -48,19 +48,10 @@ int render_pass_resolve(renderer_t *r, const render_scene_t *scene, const render
   cl_int out_pitch = (cl_int)pitch, out_h = (cl_int)p->height, op;
   cl_float scale;
   render_tone_args(scene, &scale, &op);
-  cl_int cr = clSetKernelArg(k, 0, sizeof(cl_mem), &r->linear);
-  if (cr == CL_SUCCESS)
-    cr = clSetKernelArg(k, 1, sizeof in_pitch, &in_pitch);
-  if (cr == CL_SUCCESS)
-    cr = clSetKernelArg(k, 2, sizeof hi_w, &hi_w);
-  if (cr == CL_SUCCESS)
-    cr = clSetKernelArg(k, 3, sizeof cn, &cn);
-  if (cr == CL_SUCCESS)
-    cr = clSetKernelArg(k, 4, sizeof(cl_mem), &r->resolved);
-  if (cr == CL_SUCCESS)
-    cr = clSetKernelArg(k, 5, sizeof out_pitch, &out_pitch);
-  if (cr == CL_SUCCESS)
-    cr = clSetKernelArg(k, 6, sizeof out_h, &out_h);
+  cl_int cr =
+      KERNEL_ARGS(CL_SUCCESS, k, 0, {sizeof(cl_mem), &r->linear}, {sizeof in_pitch, &in_pitch},
+                  {sizeof hi_w, &hi_w}, {sizeof cn, &cn}, {sizeof(cl_mem), &r->resolved},
+                  {sizeof out_pitch, &out_pitch}, {sizeof out_h, &out_h});
   if (cr == CL_SUCCESS && !f32)
     cr = clSetKernelArg(k, 7, sizeof scale, &scale);
   if (cr == CL_SUCCESS && !f32)

@@ -823,19 +823,10 @@ static int render_shadow(renderer_t *r, struct vol_state *vs, const vfx_shadow_t
   vs->smap_pitch = (int)pitch;
   cl_int ip = (cl_int)pitch;
   cl_kernel k = vs->kshadow;
-  cl_int cr = clSetKernelArg(k, 0, sizeof r->frame, &r->frame);
-  if (cr == CL_SUCCESS)
-    cr = clSetKernelArg(k, 1, sizeof *sh, sh);
-  if (cr == CL_SUCCESS)
-    cr = clSetKernelArg(k, 2, sizeof(cl_mem), &r->objs);
-  if (cr == CL_SUCCESS)
-    cr = clSetKernelArg(k, 3, sizeof(cl_mem), &r->nodes);
-  if (cr == CL_SUCCESS)
-    cr = clSetKernelArg(k, 4, sizeof(cl_mem), &r->tris);
-  if (cr == CL_SUCCESS)
-    cr = clSetKernelArg(k, 5, sizeof(cl_mem), &vs->smap);
-  if (cr == CL_SUCCESS)
-    cr = clSetKernelArg(k, 6, sizeof ip, &ip);
+  cl_int cr =
+      KERNEL_ARGS(CL_SUCCESS, k, 0, {sizeof r->frame, &r->frame}, {sizeof *sh, sh},
+                  {sizeof(cl_mem), &r->objs}, {sizeof(cl_mem), &r->nodes},
+                  {sizeof(cl_mem), &r->tris}, {sizeof(cl_mem), &vs->smap}, {sizeof ip, &ip});
   size_t global[2] = {pitch / SHADOW_PACKET, rows}, local[2] = {lx, ly};
   if (cr == CL_SUCCESS)
     cr = clEnqueueNDRangeKernel(r->dev.queue, k, 2, NULL, global, local, 0, NULL, NULL);
@@ -916,23 +907,10 @@ static cl_int run_volumes(renderer_t *r, const vfx_frame_t *f, const vfx_shadow_
                           size_t rows, const size_t local[2]) {
   struct vol_state *vs = r->vol;
   cl_kernel k = vs->kvol;
-  cl_int cr = clSetKernelArg(k, 0, sizeof *f, f);
-  if (cr == CL_SUCCESS)
-    cr = clSetKernelArg(k, 1, sizeof *sh, sh);
-  if (cr == CL_SUCCESS)
-    cr = clSetKernelArg(k, 2, sizeof(cl_mem), &vs->recs);
-  if (cr == CL_SUCCESS)
-    cr = clSetKernelArg(k, 3, sizeof nv, &nv);
-  if (cr == CL_SUCCESS)
-    cr = clSetKernelArg(k, 4, sizeof(cl_mem), &vs->data);
-  if (cr == CL_SUCCESS)
-    cr = clSetKernelArg(k, 5, sizeof(cl_mem), &smap);
-  if (cr == CL_SUCCESS)
-    cr = clSetKernelArg(k, 6, sizeof spitch, &spitch);
-  if (cr == CL_SUCCESS)
-    cr = clSetKernelArg(k, 7, sizeof(cl_mem), &depth);
-  if (cr == CL_SUCCESS)
-    cr = clSetKernelArg(k, 8, sizeof(cl_mem), &linear);
+  cl_int cr =
+      KERNEL_ARGS(CL_SUCCESS, k, 0, {sizeof *f, f}, {sizeof *sh, sh}, {sizeof(cl_mem), &vs->recs},
+                  {sizeof nv, &nv}, {sizeof(cl_mem), &vs->data}, {sizeof(cl_mem), &smap},
+                  {sizeof spitch, &spitch}, {sizeof(cl_mem), &depth}, {sizeof(cl_mem), &linear});
   size_t global[2] = {pitch / VOL_PACKET_W, rows / VOL_PACKET_H};
   if (cr == CL_SUCCESS)
     cr = clEnqueueNDRangeKernel(r->dev.queue, k, 2, NULL, global, local, 0, NULL, NULL);
@@ -966,19 +944,9 @@ static cl_int run_low_volumes(renderer_t *r, int d, const vfx_shadow_t *sh, cl_i
   size_t up[2] = {r->pitch / VOL_UP_PACKET, r->rows},
          up_wg[2] = {r->objects_local[0], r->objects_local[1] ? r->objects_local[1] : 1};
   cl_kernel k = vs->kdown;
-  cl_int cr = clSetKernelArg(k, 0, sizeof(cl_mem), &r->depth);
-  if (cr == CL_SUCCESS)
-    cr = clSetKernelArg(k, 1, sizeof pitch, &pitch);
-  if (cr == CL_SUCCESS)
-    cr = clSetKernelArg(k, 2, sizeof f.width, &f.width);
-  if (cr == CL_SUCCESS)
-    cr = clSetKernelArg(k, 3, sizeof f.height, &f.height);
-  if (cr == CL_SUCCESS)
-    cr = clSetKernelArg(k, 4, sizeof cd, &cd);
-  if (cr == CL_SUCCESS)
-    cr = clSetKernelArg(k, 5, sizeof(cl_mem), &vs->low_depth);
-  if (cr == CL_SUCCESS)
-    cr = clSetKernelArg(k, 6, sizeof clp, &clp);
+  cl_int cr = KERNEL_ARGS(CL_SUCCESS, k, 0, {sizeof(cl_mem), &r->depth}, {sizeof pitch, &pitch},
+                          {sizeof f.width, &f.width}, {sizeof f.height, &f.height},
+                          {sizeof cd, &cd}, {sizeof(cl_mem), &vs->low_depth}, {sizeof clp, &clp});
   if (cr == CL_SUCCESS)
     cr = clEnqueueNDRangeKernel(r->dev.queue, k, 2, NULL, down, wg, 0, NULL, NULL);
   const float clear = 0.0f;
@@ -997,26 +965,10 @@ static cl_int run_low_volumes(renderer_t *r, int d, const vfx_shadow_t *sh, cl_i
     cr = run_volumes(r, &f, sh, nv, smap, spitch, vs->low_depth, vs->low_linear, lp, lr, local);
   k = vs->kup;
   float far_ = r->frame.far_;
-  if (cr == CL_SUCCESS)
-    cr = clSetKernelArg(k, 0, sizeof(cl_mem), &vs->low_linear);
-  if (cr == CL_SUCCESS)
-    cr = clSetKernelArg(k, 1, sizeof clp, &clp);
-  if (cr == CL_SUCCESS)
-    cr = clSetKernelArg(k, 2, sizeof lw, &lw);
-  if (cr == CL_SUCCESS)
-    cr = clSetKernelArg(k, 3, sizeof lh, &lh);
-  if (cr == CL_SUCCESS)
-    cr = clSetKernelArg(k, 4, sizeof(cl_mem), &vs->low_depth);
-  if (cr == CL_SUCCESS)
-    cr = clSetKernelArg(k, 5, sizeof cd, &cd);
-  if (cr == CL_SUCCESS)
-    cr = clSetKernelArg(k, 6, sizeof far_, &far_);
-  if (cr == CL_SUCCESS)
-    cr = clSetKernelArg(k, 7, sizeof(cl_mem), &r->depth);
-  if (cr == CL_SUCCESS)
-    cr = clSetKernelArg(k, 8, sizeof pitch, &pitch);
-  if (cr == CL_SUCCESS)
-    cr = clSetKernelArg(k, 9, sizeof(cl_mem), &r->linear);
+  cr = KERNEL_ARGS(cr, k, 0, {sizeof(cl_mem), &vs->low_linear}, {sizeof clp, &clp},
+                   {sizeof lw, &lw}, {sizeof lh, &lh}, {sizeof(cl_mem), &vs->low_depth},
+                   {sizeof cd, &cd}, {sizeof far_, &far_}, {sizeof(cl_mem), &r->depth},
+                   {sizeof pitch, &pitch}, {sizeof(cl_mem), &r->linear});
   if (cr == CL_SUCCESS)
     cr = clEnqueueNDRangeKernel(r->dev.queue, k, 2, NULL, up, up_wg, 0, NULL, NULL);
   return cr;

@@ -231,28 +231,10 @@ int render_pass_waves(renderer_t *r, const render_scene_t *scene, int mode, int 
   if (cr == CL_SUCCESS)
     cr = clEnqueueWriteBuffer(r->dev.queue, r->wave_lists, CL_FALSE, 0, nlists * sizeof(int32_t),
                               r->host_lists, 0, NULL, NULL);
-  if (cr == CL_SUCCESS)
-    cr = clSetKernelArg(k, 0, sizeof r->frame, &r->frame);
-  if (cr == CL_SUCCESS)
-    cr = clSetKernelArg(k, 1, sizeof(cl_mem), &r->wave_recs);
-  if (cr == CL_SUCCESS)
-    cr = clSetKernelArg(k, 2, sizeof nw, &nw);
-  if (cr == CL_SUCCESS)
-    cr = clSetKernelArg(k, 3, sizeof(cl_mem), &r->wave_lists);
-  if (cr == CL_SUCCESS)
-    cr = clSetKernelArg(k, 4, sizeof(cl_mem), &r->depth);
-  if (cr == CL_SUCCESS)
-    cr = clSetKernelArg(k, 5, sizeof(cl_mem), &r->linear);
-  if (cr == CL_SUCCESS)
-    cr = clSetKernelArg(k, 6, sizeof(cl_mem), &hout);
-  if (cr == CL_SUCCESS)
-    cr = clSetKernelArg(k, 7, sizeof md, &md);
-  if (cr == CL_SUCCESS)
-    cr = clSetKernelArg(k, 8, sizeof(cl_mem), &r->rgba8);
-  if (cr == CL_SUCCESS)
-    cr = clSetKernelArg(k, 9, sizeof scale, &scale);
-  if (cr == CL_SUCCESS)
-    cr = clSetKernelArg(k, 10, sizeof op, &op);
+  cr = KERNEL_ARGS(cr, k, 0, {sizeof r->frame, &r->frame}, {sizeof(cl_mem), &r->wave_recs},
+                   {sizeof nw, &nw}, {sizeof(cl_mem), &r->wave_lists}, {sizeof(cl_mem), &r->depth},
+                   {sizeof(cl_mem), &r->linear}, {sizeof(cl_mem), &hout}, {sizeof md, &md},
+                   {sizeof(cl_mem), &r->rgba8}, {sizeof scale, &scale}, {sizeof op, &op});
   if (cr == CL_SUCCESS && samples > 0)
     cr = clSetKernelArg(k, 11, sizeof ns, &ns);
   size_t global[2] = {r->pitch / WAVES_PACKET, r->rows};
