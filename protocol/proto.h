@@ -159,4 +159,19 @@ size_t proto_b64_decoded_max(size_t n);
 /* Decodes; returns the byte count, or -1 on a character outside the alphabet or bad padding. */
 long proto_b64_decode(const char *src, size_t n, void *dst);
 
+/*
+ * Bakes (bake.c). A bake directory holds a manifest, bake.json,
+ * {"volfx_bake": PROTO_BAKE_VERSION, "every": K, "scene": KEY}, and snapshots named
+ * PROTO_BAKE_FILE of its frame. KEY is proto_bake_key of the scene document: the document
+ * without what the clock moves (sim.frame, sim.time, sim.playing, fluid.count and the wave
+ * fields an animation drives), so a document at any frame of the shot has the same key.
+ */
+#define PROTO_BAKE_VERSION 1
+#define PROTO_BAKE_MANIFEST "bake.json"
+#define PROTO_BAKE_FILE "frame_%06llu.snap" /* The frame as unsigned long long. */
+/* A new copy of 'doc' reduced to its key, or NULL (not an object, or out of memory). */
+cJSON *proto_bake_key(const cJSON *doc);
+/* Whether documents 'a' and 'b' have equal keys. */
+int proto_bake_same(const cJSON *a, const cJSON *b);
+
 #endif
