@@ -131,18 +131,20 @@ static value_t mix(const value_t *a, const value_t *b, double u, int unit) {
   return r;
 }
 
+/* The distance from 'a' to 'b' along the line, or the great circle when 'unit'. */
+static double distance(const value_t *a, const value_t *b, int unit) {
+  if (unit && a->n == 3)
+    return angle3(a->v, b->v);
+  double s = 0;
+  for (int i = 0; i < a->n; i++)
+    s += (b->v[i] - a->v[i]) * (b->v[i] - a->v[i]);
+  return sqrt(s);
+}
+
 /* 'cur' moved by 'step' toward 'target' (radians along the great circle when 'unit'), ending
  * exactly on the target when the step reaches it. */
 static value_t move_toward(const value_t *cur, const value_t *target, double step, int unit) {
-  double dist;
-  if (unit && cur->n == 3) {
-    dist = angle3(cur->v, target->v);
-  } else {
-    double s = 0;
-    for (int i = 0; i < cur->n; i++)
-      s += (target->v[i] - cur->v[i]) * (target->v[i] - cur->v[i]);
-    dist = sqrt(s);
-  }
+  double dist = distance(cur, target, unit);
   if (!(dist > step))
     return *target;
   return mix(cur, target, step / dist, unit);
@@ -270,8 +272,26 @@ int anim_animates(const cJSON *obj, const char *name) {
   return 0;
 }
 
-/* Applies the entries of 'obj': keyframes at 'now' always, targets only when 'elapsed' > 0. */
-static void apply(cJSON *obj, const sch_field_t *fields, double elapsed, double now) {
+/*
+ * 'cur' after 'steps' steps of 'step' toward 'target', each taken as one step alone would be,
+ * so that the value after n steps does not depend on how they were grouped. Once the target is
+ * surely reached (the steps cover the distance with two to spare) it is the target, exactly
+ * what the steps one by one end on.
+ */
+static value_t move_steps(value_t cur, const value_t *target, double step, uint64_t steps,
+                          int unit) {
+  if ((double)steps > 2 && ((double)steps - 2) * step > distance(&cur, target, unit) * (1 + 1e-6))
+    return *target;
+  for (uint64_t k = 0; k < steps; k++) {
+    cur = move_toward(&cur, target, step, unit);
+    if (memcmp(cur.v, target->v, sizeof cur.v) == 0)
+      break;
+  }
+  return cur;
+}
+
+/* Applies the entries of 'obj': keyframes at 'now' always, targets only when 'steps' > 0. */
+static void apply(cJSON *obj, const sch_field_t *fields, uint64_t steps, double dt, double now) {
   cJSON *anim = member(obj, "animate");
   for (cJSON *e = anim ? anim->child : NULL; e; e = e->next) {
     const char *name = member(e, "field")->valuestring;
@@ -283,9 +303,9 @@ static void apply(cJSON *obj, const sch_field_t *fields, double elapsed, double 
     value_t x;
     if (member(e, "keys")) {
       x = eval_keys(e, now, unit);
-    } else if (elapsed > 0) {
+    } else if (steps > 0) {
       value_t c = read_value(cur), t = read_value(member(e, "target"));
-      x = move_toward(&c, &t, member(e, "rate")->valuedouble * elapsed, unit);
+      x = move_steps(c, &t, member(e, "rate")->valuedouble * dt, steps, unit);
     } else {
       continue;
     }
@@ -294,9 +314,9 @@ static void apply(cJSON *obj, const sch_field_t *fields, double elapsed, double 
 }
 
 void anim_apply_keys(cJSON *obj, const sch_field_t *fields, double now) {
-  apply(obj, fields, 0, now);
+  apply(obj, fields, 0, 0, now);
 }
 
-void anim_advance(cJSON *obj, const sch_field_t *fields, double elapsed, double now) {
-  apply(obj, fields, elapsed, now);
+void anim_advance(cJSON *obj, const sch_field_t *fields, uint64_t steps, double dt, double now) {
+  apply(obj, fields, steps, dt, now);
 }

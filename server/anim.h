@@ -9,6 +9,7 @@
 #ifndef VOLFX_ANIM_H
 #define VOLFX_ANIM_H
 
+#include <stdint.h>
 #include <cjson/cJSON.h>
 
 #include "schema.h"
@@ -33,10 +34,11 @@ int anim_animates(const cJSON *obj, const char *name);
 void anim_apply_keys(cJSON *obj, const sch_field_t *fields, double now);
 
 /*
- * Advances the animations of 'obj': each toward-target field moves by rate * 'elapsed'
- * (seconds) and stops exactly at its target; each keyframed field takes its value at 'now'.
- * Values are written in place and nothing is allocated, so this cannot fail.
+ * Advances the animations of 'obj' by 'steps' steps of 'dt' seconds: each toward-target field
+ * moves by rate * dt a step, step by step (so the value after n steps is the same however the
+ * steps were grouped), and stops exactly at its target; each keyframed field takes its value
+ * at 'now'. Values are written in place and nothing is allocated, so this cannot fail.
  */
-void anim_advance(cJSON *obj, const sch_field_t *fields, double elapsed, double now);
+void anim_advance(cJSON *obj, const sch_field_t *fields, uint64_t steps, double dt, double now);
 
 #endif

@@ -20,6 +20,12 @@ int cloud_busy(const scene_entry_t *e);
  */
 int cloud_submit_step(server_t *srv, scene_entry_t *e, unsigned steps, call_t *call);
 /*
+ * Records that the clock took 'steps' steps the cloud did not (a sim.play tick that found a
+ * cloud job running): the next cloud_submit_step takes them first, so the cells reach the
+ * clock's frame whatever the timing. Forgotten when the cells are replaced.
+ */
+void cloud_owe_steps(scene_entry_t *e, unsigned steps);
+/*
  * Submits a job computing the density of the cells of 'e' anew, unsmoothed (after a change of
  * cloud.metaball_radius), after the cloud jobs queued; 'call' is answered then with the
  * scene's version at submission. Returns 0, or -1 as cloud_submit_step.

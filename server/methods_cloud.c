@@ -44,20 +44,15 @@ static const cJSON *get(const cJSON *o, const char *name) {
   return cJSON_GetObjectItemCaseSensitive(o, name);
 }
 
-/* How many of a job's last 'frames' simulation steps have a density worth computing when each
- * keeps the fraction 'keep' of the one before: those before weigh keep^m < 2^-24 together,
- * below a float's resolution of the density shown. */
-static unsigned frames_counted(float keep, unsigned frames) {
-  double m = ceil(-24.0 * M_LN2 / log((double)keep));
-  return m < (double)frames ? (unsigned)m : frames;
-}
-
 /*
  * Worker thread: the steps and the density. The density shown is blended once per simulation
  * step (cloud.steps_per_frame automaton steps), S = D + keep (S - D) with D the density of the
- * cells after that step, so a sim.step of n steps shows what n calls of one step would. Only the
- * last frames_counted steps need their D; once Kuromiya cells have no active cell left they
- * stay as they are, and the steps left blend the same D at once: S = D + keep^left (S - D).
+ * cells after that step. Every step of a job runs the same operations on the same values as
+ * a job of that one step would, so the cells and the density at a frame are the same bits
+ * however the steps were grouped into calls, ticks or snapshots. What is saved is work that
+ * cannot change a bit: Kuromiya cells with no active cell left stay as they are, so their
+ * steps are counted without being run and their D is computed once; without blending only the
+ * last D is computed.
  */
 static void cloud_run(renderer_t *r, job_t *j) {
   (void)r;
@@ -73,11 +68,11 @@ static void cloud_run(renderer_t *r, job_t *j) {
   unsigned frames = cj->steps / per + (cj->steps % per != 0);
   int blend =
       cj->keep > 0 && frames > 0 && shown && memcmp(shown->dims, src->n, sizeof src->n) == 0;
-  unsigned counted = blend ? frames_counted(cj->keep, frames) : 1;
   cloud_cells_t *buf[2] = {NULL, NULL}, *cur = src;
   /* Every density of d is written below: no zeroing. */
   density_grid_t *d = density_grid_alloc(src->n);
   float *next = blend ? reclaim_alloc(n * sizeof *next) : NULL;
+  float *still_d = NULL; /* The density of cells that no longer change, once computed. */
   if (!d || (blend && !next))
     goto oom;
   if (cj->steps > 0) {
@@ -91,33 +86,52 @@ static void cloud_run(renderer_t *r, job_t *j) {
   const float *prev = blend ? shown->data : NULL;
   /* The step the density in 'prev' shows; the wind carries it along with the cells. */
   uint64_t shown_step = src->step;
-  unsigned taken = 0;
+  unsigned taken = 0, run = 0;
+  uint64_t counted = 0; /* Steps of still cells, counted but not run. */
+  int still = 0;
   for (unsigned f = 0; f < frames; f++) {
-    int still = 0;
-    for (unsigned i = 0; i < per && taken < cj->steps && !still; i++) {
-      cloud_cells_t *out = buf[taken++ % 2];
+    for (unsigned i = 0; i < per && taken < cj->steps; i++, taken++) {
+      if (!still)
+        still = cj->cfg.params.rules == CLOUD_KUROMIYA && !cloud_cells_any(cur, CLOUD_ACT);
+      if (still) {
+        counted++;
+        continue;
+      }
+      cloud_cells_t *out = buf[run++ % 2];
       cloud_step(cur, out, &cj->cfg.params);
       cur = out;
-      still = cj->cfg.params.rules == CLOUD_KUROMIYA && !cloud_cells_any(cur, CLOUD_ACT);
     }
-    /* The steps that count: the last 'counted', or all that are left once nothing changes. */
-    unsigned left = frames - f;
-    if (!still && left > counted)
-      continue;
+    if (!blend && f + 1 < frames)
+      continue; /* Only the last density is kept. */
     float *target = blend && prev == d->data ? next : d->data;
-    if (cloud_density(cur, cj->cfg.radius, target) != 0)
-      goto oom;
+    if (still && still_d) {
+      memcpy(target, still_d, n * sizeof *target);
+    } else {
+      if (cloud_density(cur, cj->cfg.radius, target) != 0)
+        goto oom;
+      if (still && f + 1 < frames) {
+        still_d = reclaim_alloc(n * sizeof *still_d);
+        if (!still_d)
+          goto oom;
+        memcpy(still_d, target, n * sizeof *target);
+      }
+    }
     if (blend) {
-      cloud_blend_shifted(target, prev, src->n,
-                          cloud_wind_shift(&cj->cfg.params, shown_step, cur->step),
-                          still ? powf(cj->keep, (float)left) : cj->keep);
-      shown_step = cur->step;
+      uint64_t now = cur->step + counted;
+      cloud_blend_shifted(target, prev, src->n, cloud_wind_shift(&cj->cfg.params, shown_step, now),
+                          cj->keep);
+      shown_step = now;
       prev = target;
     }
-    if (still) {
-      cur->step += cj->steps - taken; /* The rest change nothing: counted only. */
-      break;
+  }
+  if (counted > 0) {
+    if (cur == src) { /* Shared and immutable: the count goes on a copy. */
+      cloud_cells_unref(buf[0]);
+      buf[0] = cur = cloud_cells_copy(src);
+      if (!cur)
+        goto oom;
     }
+    cur->step += counted;
   }
   if (frames == 0 && cloud_density(cur, cj->cfg.radius, d->data) != 0)
     goto oom;
@@ -125,19 +139,19 @@ static void cloud_run(renderer_t *r, job_t *j) {
     float *last = next;
     next = d->data;
     d->data = last;
-  } else if (blend && prev == shown->data) { /* Nothing was computed (not reached). */
-    memcpy(d->data, prev, n * sizeof *d->data);
   }
   cj->res->cells = cloud_cells_ref(cur);
   cj->res->density = d;
   cj->res->ok = 1;
   reclaim_free(next, n * sizeof *next);
+  reclaim_free(still_d, n * sizeof *still_d);
   cloud_cells_unref(buf[0]);
   cloud_cells_unref(buf[1]);
   return;
 oom:
   density_grid_unref(d);
   reclaim_free(next, n * sizeof *next);
+  reclaim_free(still_d, n * sizeof *still_d);
   cloud_cells_unref(buf[0]);
   cloud_cells_unref(buf[1]);
   j->code = PROTO_E_INTERNAL;
@@ -243,23 +257,37 @@ int cloud_busy(const scene_entry_t *e) {
   return e->scene->cloud_chain != NULL;
 }
 
+void cloud_owe_steps(scene_entry_t *e, unsigned steps) {
+  if (e->cloud_owed_gen != e->scene->cloud_gen)
+    e->cloud_owed = 0, e->cloud_owed_gen = e->scene->cloud_gen;
+  e->cloud_owed += steps;
+}
+
 int cloud_submit_step(server_t *srv, scene_entry_t *e, unsigned steps, call_t *call) {
   scene_t *s = e->scene;
   scene_cloud_t cfg;
   if (scene_cloud_config(s, &cfg) != 0 || !s->cloud_cells)
     return -1;
-  uint64_t n = (uint64_t)steps * cfg.steps_per_frame;
+  /* The steps owed come first. */
+  uint64_t owed = e->cloud_owed_gen == s->cloud_gen ? e->cloud_owed : 0;
+  if (steps == 0 && owed == 0)
+    return 0; /* Nothing owed: the cells are at the clock's frame. */
+  uint64_t n = ((uint64_t)steps + owed) * cfg.steps_per_frame;
   /* A million automaton steps of the smallest grid take seconds; more is surely a mistake,
    * and unsigned arithmetic must not wrap. */
   if (n > 1000000)
     n = 1000000;
   cloud_job_t *cj = job_new(srv, s, (unsigned)n, cfg.keep, call);
-  if (!cj)
-    return -1;
-  if (job_submit(srv, s, cj) != 0) {
-    job_free(cj);
+  if (!cj) {
+    cloud_owe_steps(e, steps);
     return -1;
   }
+  if (job_submit(srv, s, cj) != 0) {
+    job_free(cj);
+    cloud_owe_steps(e, steps);
+    return -1;
+  }
+  e->cloud_owed = 0;
   return 0;
 }
 

@@ -46,6 +46,9 @@ struct fluid_host {
                            none. Worker thread only. */
   scene_entry_t *entry; /* NULL once the scene is removed. Loop thread only. */
   int busy;             /* Step jobs in flight. Loop thread only. */
+  uint64_t owed;        /* Steps the clock took that no job has taken yet (sim.play ticks that
+                           found a job running, a full queue). Loop thread only. */
+  uint64_t owed_gen;    /* The particles_epoch 'owed' belongs to. Loop thread only. */
 };
 
 typedef struct fluid_job {
@@ -56,6 +59,7 @@ typedef struct fluid_job {
   particles_t *out;   /* The result, NULL on failure. */
   uint64_t gen;       /* The scene's particles_epoch when submitted. */
   double time, frame; /* The clock sim.step answers with. */
+  uint64_t first;     /* The frame the first step starts from. */
   fluid_params_t params;
   uint32_t emit_max; /* The emitters stop at this many particles. */
   unsigned steps;
@@ -216,14 +220,15 @@ static void step_run(renderer_t *r, job_t *j) {
     j->code = PROTO_E_INVALID_PARAMS;
     goto out;
   }
+  fluid_sim_set_frame(h->sim, fj->first);
   for (unsigned i = 0; i < fj->steps; i++) {
     if (fluid_sim_step(h->sim, fj->dt, j->err, sizeof j->err) != 0) {
       j->code = PROTO_E_DEVICE;
       goto out;
     }
     if (emitting && fluid_sim_count(h->sim) >= emit_max) {
-      /* Full: the emitters stop (their progress kept), and what the last step added beyond
-       * max_particles goes, newest first. */
+      /* Full: the emitters stop, and what the last step added beyond max_particles goes,
+       * newest first. */
       emitting = 0;
       fj->params.nemitters = 0;
       if (trim(h->sim, emit_max, j->err, sizeof j->err) != 0 ||
@@ -294,26 +299,52 @@ int fluid_busy(const scene_entry_t *e) {
   return e->fluid && e->fluid->busy > 0;
 }
 
-int fluid_submit_step(server_t *srv, scene_entry_t *e, unsigned steps, double dt, call_t *call) {
+/* The host of the scene's fluid, made on first use; NULL when out of memory. */
+static fluid_host_t *host_of(scene_entry_t *e) {
   if (!e->fluid) {
     e->fluid = calloc(1, sizeof *e->fluid);
-    if (!e->fluid)
-      return -1;
-    e->fluid->entry = e;
+    if (e->fluid)
+      e->fluid->entry = e;
   }
-  fluid_job_t *fj = calloc(1, sizeof *fj);
-  if (!fj)
+  return e->fluid;
+}
+
+void fluid_owe_steps(scene_entry_t *e, unsigned steps) {
+  fluid_host_t *h = host_of(e);
+  if (!h)
+    return;
+  if (h->owed_gen != e->scene->particles_epoch)
+    h->owed = 0, h->owed_gen = e->scene->particles_epoch;
+  h->owed += steps;
+}
+
+int fluid_submit_step(server_t *srv, scene_entry_t *e, unsigned steps, double dt, call_t *call) {
+  fluid_host_t *h = host_of(e);
+  if (!h)
     return -1;
+  /* The steps owed come first: the particles reach the clock's frame however the steps were
+   * taken. */
+  uint64_t owed = h->owed_gen == e->scene->particles_epoch ? h->owed : 0;
+  if (owed > UINT32_MAX - (uint64_t)steps)
+    owed = UINT32_MAX - (uint64_t)steps;
+  if (steps == 0 && owed == 0)
+    return 0; /* Nothing owed: the particles are at the clock's frame. */
+  fluid_job_t *fj = calloc(1, sizeof *fj);
+  if (!fj) {
+    fluid_owe_steps(e, steps);
+    return -1;
+  }
   fj->host = e->fluid;
   fj->call = call;
   fj->in = particles_ref(e->scene->particles);
   params_of(e->scene->doc, &fj->params);
   fj->emit_max = emit_cap(e->scene->doc, srv->cfg.limits.particles);
-  fj->steps = steps;
+  fj->steps = steps + (unsigned)owed;
   fj->dt = dt;
   fj->gen = e->scene->particles_epoch;
   fj->time = scene_time(e->scene);
   fj->frame = scene_frame(e->scene);
+  fj->first = fj->frame > fj->steps ? (uint64_t)fj->frame - fj->steps : 0;
   fj->job.scene = render_scene_ref(e->scene->snapshot);
   fj->job.run = step_run;
   fj->job.done = step_done;
@@ -321,9 +352,11 @@ int fluid_submit_step(server_t *srv, scene_entry_t *e, unsigned steps, double dt
     render_scene_unref(fj->job.scene);
     particles_unref(fj->in);
     free(fj);
+    fluid_owe_steps(e, steps);
     return -1;
   }
-  e->fluid->busy++;
+  h->owed = 0;
+  h->busy++;
   return 0;
 }
 

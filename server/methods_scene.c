@@ -4,6 +4,7 @@
  */
 #include <ctype.h>
 #include <math.h>
+#include <stdlib.h>
 #include <string.h>
 
 #include "cloud.h"
@@ -12,6 +13,7 @@
 #include "fluid.h"
 #include "frames.h"
 #include "log.h"
+#include "worker.h"
 
 static void answer_scene_error(call_t *call, const scene_error_t *err, const char *fallback) {
   const char *path = err->path[0] ? err->path : fallback;
@@ -230,11 +232,20 @@ static void on_play(uv_timer_t *t) {
       n = (uint64_t)ceil(e->rate);
     scene_advance(e->scene, (unsigned)n, scene_dt(e->scene));
     e->play_steps = due;
-    /* One fluid job at a time per scene: while one runs, the fluid skips these steps. */
-    if (fluid_wants_step(e) && !fluid_busy(e))
-      fluid_submit_step(e->srv, e, (unsigned)n, scene_dt(e->scene), NULL);
-    if (cloud_wants_step(e) && !cloud_busy(e))
-      cloud_submit_step(e->srv, e, (unsigned)n, NULL);
+    /* One job at a time per scene and simulation: while one runs, these steps are owed, and
+     * the next job takes them first, so the state at a frame does not depend on the timing. */
+    if (fluid_wants_step(e)) {
+      if (fluid_busy(e))
+        fluid_owe_steps(e, (unsigned)n);
+      else
+        fluid_submit_step(e->srv, e, (unsigned)n, scene_dt(e->scene), NULL);
+    }
+    if (cloud_wants_step(e)) {
+      if (cloud_busy(e))
+        cloud_owe_steps(e, (unsigned)n);
+      else
+        cloud_submit_step(e->srv, e, (unsigned)n, NULL);
+    }
   }
 }
 
@@ -275,13 +286,53 @@ static void sim_play(call_t *call) {
   call_result(call, r);
 }
 
+/* A job behind the simulations' last steps that answers sim.pause. */
+typedef struct pause_job {
+  job_t job;
+  call_t *call;
+  cJSON *result;
+} pause_job_t;
+
+static void pause_run(renderer_t *r, job_t *j) {
+  (void)r;
+  (void)j;
+}
+
+static void pause_done(job_t *j) {
+  pause_job_t *pj = (pause_job_t *)j;
+  call_result(pj->call, pj->result);
+  free(pj);
+}
+
+/*
+ * Stops the play timer. The steps the fluid and the cloud still owe the clock (ticks that found
+ * a job running) are taken now, and the answer waits behind them, as do the connection's next
+ * requests: what they read is the state at the frame the answer reports.
+ */
 static void sim_pause(call_t *call) {
   scene_entry_t *e = call_scene(call);
   if (!e)
     return;
   play_stop(e);
+  int fluid = fluid_wants_step(e), cloud = cloud_wants_step(e);
+  if (cloud)
+    cloud_submit_step(call->srv, e, 0, NULL);
+  if (fluid)
+    fluid_submit_step(call->srv, e, 0, scene_dt(e->scene), NULL);
   cJSON *r = clock_json(e);
   cJSON_AddBoolToObject(r, "playing", 0);
+  pause_job_t *pj = (fluid || cloud) ? calloc(1, sizeof *pj) : NULL;
+  if (pj) {
+    pj->call = call;
+    pj->result = r;
+    pj->job.run = pause_run;
+    pj->job.done = pause_done;
+    if (worker_submit(call->srv->worker, &pj->job) == 0) {
+      call_hold(call);
+      return;
+    }
+    free(pj);
+  }
   call_result(call, r);
 }
 

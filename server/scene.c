@@ -1226,9 +1226,10 @@ static render_scene_t *snapshot_advanced(const render_scene_t *old, const cJSON 
 
 /*
  * Advances the clock by 'steps' steps of 'dt' seconds, and the wave animations with it, in
- * the document and in one fresh snapshot. Toward-target animations move at a constant rate
- * and keyframes depend on the time alone, so a batch of steps is applied in one go: 10000
- * steps cost what one does, and end where 10000 single steps would (up to rounding). The
+ * the document and in one fresh snapshot. Toward-target animations move step by step, as
+ * single steps would (a batch that surely reaches the target lands on it at once), and
+ * keyframes depend on the time alone, so a batch of steps ends exactly where single steps
+ * would. The
  * clock and the animations are not edits, so 'version' is left alone: it counts changes made
  * by clients. Time and frame stop at the schema's maxima so the document stays valid. Should
  * memory run out, the old snapshot (with the old clock and waves) stays in place until the
@@ -1258,7 +1259,7 @@ void scene_advance(scene_t *s, unsigned steps, double dt) {
   cJSON_SetNumberValue(jf, f);
   const sch_field_t *wf = wave_fields();
   for (cJSON *w = get(s->doc, "waves")->child; w; w = w->next)
-    anim_advance(w, wf, steps * dt, t);
+    anim_advance(w, wf, steps, dt, t);
   render_scene_t *rs = snapshot_advanced(s->snapshot, s->doc, s->particles, (uint64_t)f, t);
   if (rs) {
     render_scene_unref(s->snapshot);

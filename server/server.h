@@ -108,6 +108,8 @@ typedef struct scene_entry {
   uint64_t play_steps; /* Steps taken since play_start_ns. */
   int closing;
   struct fluid_host *fluid; /* The fluid's simulation state (methods_fluid.c); NULL for none. */
+  uint64_t cloud_owed;      /* Steps the clock took that no cloud job has (methods_cloud.c). */
+  uint64_t cloud_owed_gen;  /* The scene's cloud_gen 'cloud_owed' belongs to. */
 } scene_entry_t;
 
 struct server {

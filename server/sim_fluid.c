@@ -50,8 +50,7 @@ struct fluid_sim {
   float *colliders;             /* ncolliders records of COL_STRIDE floats. */
   int ncolliders;
 
-  double emit_budget[FLUID_MAX_EMITTERS]; /* Fractional particles owed by each emitter. */
-  uint64_t rng;
+  uint64_t frame; /* The frame the next step starts from: it picks the emitters' draws. */
   int last_substeps;
 };
 
@@ -259,7 +258,6 @@ fluid_sim_t *fluid_sim_create(cl_dev_t *dev, const fluid_params_t *p, char *err,
     return set_err(err, errlen, "[fluid] out of memory"), NULL;
   s->dev = dev;
   s->p = *p;
-  s->rng = p->seed;
   s->cap = p->max_particles;
   s->stride = ((size_t)s->cap + LOCAL - 1) / LOCAL * LOCAL;
   grid_init(s);
@@ -407,6 +405,10 @@ void fluid_sim_get_particles(const fluid_sim_t *s, float *pos, float *vel) {
   }
 }
 
+void fluid_sim_set_frame(fluid_sim_t *s, uint64_t frame) {
+  s->frame = frame;
+}
+
 uint32_t fluid_sim_count(const fluid_sim_t *s) {
   return s->n;
 }
@@ -495,26 +497,34 @@ int fluid_sim_set_colliders(fluid_sim_t *s, const robject_t *objs, int n, char *
   return 0;
 }
 
-/* Adds the particles the emitters owe after 'dt' seconds, up to the capacity. */
+/*
+ * Adds the particles the emitters owe for the step from frame f to f + 1 of 'dt' seconds, up
+ * to the capacity: floor(rate dt (f + 1)) - floor(rate dt f) each, placed by random numbers
+ * drawn from the seed, the frame and the emitter. What a step emits depends on the frame
+ * alone, not on the steps before it, so a simulation continued from a snapshot, or stepped in
+ * other groupings, emits exactly the same particles.
+ */
 static void emit(fluid_sim_t *s, double dt) {
+  double f = (double)s->frame;
   for (int e = 0; e < s->p.nemitters; e++) {
     const fluid_emitter_t *m = &s->p.emitters[e];
-    s->emit_budget[e] += m->rate * dt;
-    double whole = floor(s->emit_budget[e]);
-    s->emit_budget[e] -= whole;
+    double per = (double)m->rate * dt;
+    double whole = floor(per * (f + 1)) - floor(per * f);
+    uint64_t rng = s->p.seed ^ (0x5851F42D4C957F2Dull * (s->frame + 1));
+    rng = rng_next(&rng) ^ (0x2545F4914F6CDD1Dull * (uint64_t)(e + 1));
     for (double k = 0; k < whole && s->n < s->cap; k++) {
       float q[3];
       if (m->shape == FLUID_EMIT_SPHERE) {
         /* Rejection sampling of the unit ball. */
         do {
           for (int i = 0; i < 3; i++)
-            q[i] = 2 * rng_unit(&s->rng) - 1;
+            q[i] = 2 * rng_unit(&rng) - 1;
         } while (q[0] * q[0] + q[1] * q[1] + q[2] * q[2] > 1);
         for (int i = 0; i < 3; i++)
           q[i] = m->position[i] + q[i] * m->size[0];
       } else {
         for (int i = 0; i < 3; i++)
-          q[i] = m->position[i] + (rng_unit(&s->rng) - 0.5f) * m->size[i];
+          q[i] = m->position[i] + (rng_unit(&rng) - 0.5f) * m->size[i];
       }
       uint32_t at = s->n++;
       for (int i = 0; i < 3; i++) {
@@ -533,8 +543,30 @@ static int cell_coord(float p, float origin, float inv_cell, int n) {
   return c < 0 ? 0 : c >= n ? n - 1 : c;
 }
 
-/* Sorts the particles by cell (stable) and fills the table of cell starts. */
+/*
+ * Puts the particles back in the order they were set or emitted. The sort below is stable,
+ * so starting from this order makes the sorted order (by cell, then by that order) a function
+ * of the particles alone, and with it the order of every sum on the device: a simulation
+ * continued from its own last substep and one set up again from the same particles (the next
+ * sim.step call, a snapshot, another process) compute the same bits.
+ */
+static void unsort(fluid_sim_t *s) {
+  size_t st = s->stride;
+  for (uint32_t k = 0; k < s->n; k++) {
+    uint32_t id = s->ids[k];
+    for (int i = 0; i < 6; i++)
+      s->scratch[i * st + id] = s->state[i * st + k];
+  }
+  for (uint32_t k = 0; k < s->n; k++)
+    s->ids[k] = k;
+  float *t = s->state;
+  s->state = s->scratch, s->scratch = t;
+}
+
+/* Sorts the particles by cell, then by the order they were set or emitted, and fills the
+ * table of cell starts. */
 static void sort_by_cell(fluid_sim_t *s) {
+  unsort(s);
   size_t st = s->stride;
   memset(s->cell_start, 0, ((size_t)s->ncells + 1) * sizeof(int32_t));
   for (uint32_t k = 0; k < s->n; k++) {
@@ -694,6 +726,7 @@ int fluid_sim_step(fluid_sim_t *s, double dt, char *err, size_t errlen) {
   if (!(dt > 0 && dt <= 1))
     return set_err(err, errlen, "fluid: dt must lie in (0, 1] seconds"), -1;
   emit(s, dt);
+  s->frame++;
   s->last_substeps = 0;
   if (s->n == 0)
     return 0;

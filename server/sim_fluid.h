@@ -73,7 +73,7 @@ fluid_sim_t *fluid_sim_create(cl_dev_t *dev, const fluid_params_t *p, char *err,
 void fluid_sim_destroy(fluid_sim_t *sim);
 
 /*
- * Replaces the parameters (emitter progress and particles kept). Returns -1 with a message
+ * Replaces the parameters (the particles and the frame kept). Returns -1 with a message
  * and nothing changed if 'p' is invalid, changes 'max_particles' or leaves particles outside
  * the new bounds.
  */
@@ -90,6 +90,10 @@ int fluid_sim_set_particles(fluid_sim_t *sim, const float *pos_xyz, const float 
 /* Copies the particles, in the order they were set or emitted, into 'pos' and 'vel' (3 floats
  * each per particle; either may be NULL). */
 void fluid_sim_get_particles(const fluid_sim_t *sim, float *pos, float *vel);
+
+/* Sets the frame the next step starts from (0 for a new simulation); each step adds one. The
+ * emitters' particles in a step depend on that frame and the seed alone. */
+void fluid_sim_set_frame(fluid_sim_t *sim, uint64_t frame);
 
 /* The number of particles. */
 uint32_t fluid_sim_count(const fluid_sim_t *sim);
