@@ -11,6 +11,7 @@
 #include <stdlib.h>
 #include <string.h>
 
+#include "cli_batch.h"
 #include "proto.h"
 #include "volfx.h"
 
@@ -73,6 +74,24 @@ static const char usage_text[] =
     "  call METHOD [JSON_PARAMS]     any method, params given raw\n"
     "  shutdown                      server.shutdown\n"
     "  help                          this text\n"
+    "\n"
+    "Render-farm commands (each starts a private volfxd, the one beside volfx or\n"
+    "$VOLFX_VOLFXD, and always stops it; the global options do not apply to them):\n"
+    "  batch SCENE -s FIRST -e LAST [-j STEP] -o PATTERN [--bake DIR] [-W W] [-H H]\n"
+    "        [--format F] [--aov A] [--layers a,b] [--camera JSON] [--antialias N]\n"
+    "        [--png-level L] [--overwrite] [--presets DIR] [--device D] [-v]\n"
+    "                                render frames FIRST, FIRST+STEP, ... up to LAST of SCENE\n"
+    "                                (a preset, a SCENE.json or a snapshot file) into PATTERN,\n"
+    "                                each run of # the zero-padded frame number\n"
+    "                                ('shots/a/f_####.png'). A file is written whole or not at\n"
+    "                                all; frames whose file is complete are skipped unless\n"
+    "                                --overwrite. --bake DIR starts from the nearest snapshot\n"
+    "                                of a bake of the same SCENE instead of simulating from\n"
+    "                                its start\n"
+    "  bake SCENE -e LAST [-k EVERY] -o DIR [--presets DIR] [--device D] [-v]\n"
+    "                                simulate SCENE once up to frame LAST, saving\n"
+    "                                DIR/frame_NNNNNN.snap every EVERY frames (default 24) and\n"
+    "                                at LAST; run again, it resumes from DIR's latest snapshot\n"
     "\n"
     "Exit status: 0 on success, 1 when the server or the connection reported an error (its\n"
     "message and data.path go to stderr), 2 on a command-line error.\n";
@@ -1095,6 +1114,11 @@ int main(int argc, char **argv) {
   if (strcmp(argv[i], "help") == 0) {
     fputs(usage_text, stdout);
     return 0;
+  }
+  if (strcmp(argv[i], "batch") == 0) { /* These start a server of their own. */
+    return cli_batch(argc - i, argv + i);
+  } else if (strcmp(argv[i], "bake") == 0) {
+    return cli_bake(argc - i, argv + i);
   }
 
   volfx_error_t e;
