@@ -14,6 +14,11 @@
  *            its 'done' runs, the stepped particles and cells are in the scene's snapshot;
  *   render   a render job of that snapshot (PNG frames come back encoded);
  *   write    the bytes written atomically on libuv's thread pool, then job.progress.
+ * A bake job (sim.bake) runs the same chain with a snapshot in place of the render: it visits
+ * the frames that are multiples of 'every' and the last, and writes each as a snapshot in
+ * scene.save's format. Before its first frame the bake's manifest (bake.json) is checked on
+ * the thread pool, or written when the directory has none: a directory holding a bake of
+ * another scene is refused, and sim.bake is answered only then.
  * A full render queue delays the chain by a timer instead of failing it. The job holds a
  * reference for every callback it waits on and is freed when the last returns, which may be
  * after it has ended (cancelled, failed, shut down).
@@ -34,6 +39,7 @@
 #include "frames.h"
 #include "jobs.h"
 #include "log.h"
+#include "snapshot.h"
 
 /* Finished jobs kept for job.list. */
 #define JOBS_KEEP_ENDED 16
@@ -59,6 +65,8 @@ struct seq_job {
   char error[512];
   uv_timer_t retry;
   int refs; /* The list, the retry timer handle, and each callback waited on. */
+  int bake; /* sim.bake: snapshots every 'every' frames and at 'last' instead of renders. */
+  uint64_t every;
 };
 
 typedef struct {
@@ -66,8 +74,9 @@ typedef struct {
   seq_job_t *job;
   char path[PATH_MAX];
   char file[300];
-  unsigned char *bytes;
+  unsigned char *bytes; /* A frame's bytes, or NULL for 'snap'. */
   size_t n;
+  snapshot_out_t *snap; /* A bake's snapshot. */
   int err;
   const char *step;
 } seq_write_t;
@@ -89,6 +98,7 @@ static cJSON *job_json(const seq_job_t *job) {
   cJSON *o = cJSON_CreateObject();
   cJSON_AddNumberToObject(o, "id", (double)job->id);
   cJSON_AddStringToObject(o, "scene", job->scene);
+  cJSON_AddStringToObject(o, "kind", job->bake ? "bake" : "sequence");
   cJSON_AddStringToObject(o, "state", state_names[job->state]);
   cJSON_AddNumberToObject(o, "done", (double)job->done);
   cJSON_AddNumberToObject(o, "total", (double)job->total);
@@ -152,13 +162,31 @@ static void retry_later(seq_job_t *job, uv_timer_cb fn) {
 
 static void write_work(uv_work_t *req) {
   seq_write_t *w = req->data;
-  w->err = files_write_atomic(w->path, w->bytes, w->n, &w->step);
+  if (w->snap)
+    w->err = snapshot_out_write(w->snap, w->path, &w->n, &w->step);
+  else
+    w->err = files_write_atomic(w->path, w->bytes, w->n, &w->step);
+}
+
+/* The frame after 'f' that the job visits; f itself when there is none. */
+static uint64_t next_of(const seq_job_t *job, uint64_t f) {
+  if (!job->bake)
+    return f + job->step;
+  uint64_t m = (f / job->every + 1) * job->every;
+  return m <= job->last ? m : f < job->last ? job->last : f;
+}
+
+/* The frames a bake from 'from' visits: the multiples of 'every' up to 'last', and 'last'. */
+static uint64_t bake_total(uint64_t from, uint64_t last, uint64_t every) {
+  uint64_t m = (from + every - 1) / every * every;
+  return (m <= last ? (last - m) / every + 1 : 0) + (last % every != 0);
 }
 
 static void write_done(uv_work_t *req, int status) {
   seq_write_t *w = req->data;
   seq_job_t *job = w->job;
   free(w->bytes);
+  snapshot_out_free(w->snap);
   if (job->state == JOB_RUNNING) {
     if (status != 0 || w->err) {
       job_end(job, JOB_FAILED, "cannot %s \"%s\": %s", w->step ? w->step : "write", w->file,
@@ -170,13 +198,55 @@ static void write_done(uv_work_t *req, int status) {
         job_end(job, JOB_DONE, NULL);
       } else {
         notify(job);
-        job->next_frame += job->step;
+        job->next_frame = next_of(job, job->next_frame);
         step_frame(job);
       }
     }
   }
   free(w);
   job_unref(job);
+}
+
+/* Queues the write of 'w' (bytes or a snapshot) to the file w->file names; the job's reference
+ * held by the caller passes to it. */
+static void queue_write(seq_job_t *job, seq_write_t *w) {
+  char why[512];
+  if (datapath_resolve(job->srv->cfg.data_dir, w->file, 0, w->path, sizeof w->path, why, sizeof why,
+                       NULL) != 0) {
+    job_end(job, JOB_FAILED, "%s", why);
+  } else {
+    w->req.data = w;
+    w->job = job;
+    if (uv_queue_work(job->srv->loop, &w->req, write_work, write_done) == 0)
+      return;
+    job_end(job, JOB_FAILED, "cannot queue the write of \"%s\"", w->file);
+  }
+  free(w->bytes);
+  snapshot_out_free(w->snap);
+  free(w);
+  job_unref(job);
+}
+
+/* ---- snapshot (sim.bake) ---- */
+
+static void submit_snapshot(seq_job_t *job) {
+  scene_entry_t *e = server_find_scene(job->srv, job->scene);
+  if (!e) {
+    job_end(job, JOB_FAILED, "scene \"%s\" was deleted", job->scene);
+    return;
+  }
+  seq_write_t *w = calloc(1, sizeof *w);
+  if (w)
+    w->snap = snapshot_out_new(e->scene);
+  if (!w || !w->snap) {
+    free(w);
+    job_end(job, JOB_FAILED, "out of memory");
+    return;
+  }
+  snprintf(w->file, sizeof w->file, "%s/" PROTO_BAKE_FILE, job->dir,
+           (unsigned long long)job->next_frame);
+  job->refs++;
+  queue_write(job, w);
 }
 
 /* ---- render ---- */
@@ -193,37 +263,20 @@ static void render_done(job_t *j) {
     return;
   }
   seq_write_t *w = calloc(1, sizeof *w);
-  char why[512];
-  if (w) {
-    snprintf(w->file, sizeof w->file, "%s/frame_%06llu.%s", job->dir,
-             (unsigned long long)job->next_frame, job->ext);
-    if (datapath_resolve(job->srv->cfg.data_dir, w->file, 0, w->path, sizeof w->path, why,
-                         sizeof why, NULL) != 0) {
-      job_end(job, JOB_FAILED, "%s", why);
-      free(w);
-      w = NULL;
-    }
-  } else {
-    job_end(job, JOB_FAILED, "out of memory");
-  }
   if (!w) {
+    job_end(job, JOB_FAILED, "out of memory");
     free(j->out.bytes);
     free(j);
     job_unref(job);
     return;
   }
-  w->req.data = w;
-  w->job = job;
+  snprintf(w->file, sizeof w->file, "%s/frame_%06llu.%s", job->dir,
+           (unsigned long long)job->next_frame, job->ext);
   w->bytes = j->out.bytes;
   w->n = j->out.nbytes;
   free(j);
   /* The reference held for the render passes to the write. */
-  if (uv_queue_work(job->srv->loop, &w->req, write_work, write_done) != 0) {
-    job_end(job, JOB_FAILED, "cannot queue the write of \"%s\"", w->file);
-    free(w->bytes);
-    free(w);
-    job_unref(job);
-  }
+  queue_write(job, w);
 }
 
 static void submit_render(seq_job_t *job);
@@ -275,6 +328,8 @@ static void barrier_done(job_t *j) {
   if (job->state == JOB_RUNNING) {
     if (code != 0)
       job_end(job, JOB_FAILED, "the server is shutting down");
+    else if (job->bake)
+      submit_snapshot(job);
     else
       submit_render(job);
   }
@@ -392,6 +447,85 @@ static int running_jobs(const server_t *s, const char *scene) {
   return n;
 }
 
+/* The checks every job starts with: the scene paused and without a running job, room for
+ * one more job, and 'dir' made under the data directory. Returns 0, or -1 with the call
+ * answered. */
+static int job_admit(call_t *call, scene_entry_t *e, const char *dir) {
+  server_t *s = call->srv;
+  if (uv_is_active((uv_handle_t *)&e->play)) {
+    call_error(call, PROTO_E_INVALID_PARAMS, "scene",
+               "invalid params: scene \"%s\" is playing; sim.pause it first", e->scene->name);
+    return -1;
+  }
+  if (running_jobs(s, e->scene->name) > 0) {
+    call_error(call, PROTO_E_BUSY, "scene", "busy: scene \"%s\" already has a running job",
+               e->scene->name);
+    return -1;
+  }
+  if (running_jobs(s, NULL) >= JOBS_MAX_RUNNING) {
+    call_error(call, PROTO_E_LIMIT, NULL,
+               "limit exceeded: at most %d jobs run at once (limits.jobs_running)",
+               JOBS_MAX_RUNNING);
+    return -1;
+  }
+  char why[512];
+  if (!dir[0]) {
+    call_error(call, PROTO_E_INVALID_PARAMS, "dir",
+               "invalid params: dir: must name a directory under the data directory");
+    return -1;
+  }
+  if (!s->cfg.data_dir[0]) {
+    call_error(call, PROTO_E_INVALID_PARAMS, "dir",
+               "invalid params: the server has no data directory (--data) to write files to");
+    return -1;
+  }
+  if (make_dirs(s->cfg.data_dir, dir, why, sizeof why) != 0) {
+    call_error(call, PROTO_E_INVALID_PARAMS, "dir", "invalid params: dir: %s", why);
+    return -1;
+  }
+  return 0;
+}
+
+/* A new running job of the scene of 'e' writing into 'dir', listed; NULL (answered) on OOM. */
+static seq_job_t *job_new(call_t *call, scene_entry_t *e, const char *dir) {
+  server_t *s = call->srv;
+  seq_job_t *job = calloc(1, sizeof *job);
+  cJSON *params = cJSON_Duplicate(call->params, 1);
+  if (!job || !params) {
+    free(job);
+    cJSON_Delete(params);
+    call_error(call, PROTO_E_INTERNAL, NULL, "internal error: out of memory");
+    return NULL;
+  }
+  job->srv = s;
+  job->id = ++s->next_job_id;
+  job->conn = call->conn;
+  snprintf(job->scene, sizeof job->scene, "%s", e->scene->name);
+  snprintf(job->dir, sizeof job->dir, "%s", dir);
+  job->params = params;
+  job->refs = 2; /* The list and the retry timer. */
+  uv_timer_init(s->loop, &job->retry);
+  job->retry.data = job;
+  job->next = s->jobs;
+  s->jobs = job;
+  prune_ended(s);
+  return job;
+}
+
+/* The answer to the call that started 'job': {id, total, files}. */
+static cJSON *job_started(const seq_job_t *job) {
+  cJSON *r = cJSON_CreateObject();
+  cJSON_AddNumberToObject(r, "id", (double)job->id);
+  cJSON_AddNumberToObject(r, "total", (double)job->total);
+  char pattern[300];
+  if (job->bake)
+    snprintf(pattern, sizeof pattern, "%s/frame_%%06d.snap", job->dir);
+  else
+    snprintf(pattern, sizeof pattern, "%s/frame_%%06d.%s", job->dir, job->ext);
+  cJSON_AddStringToObject(r, "files", pattern);
+  return r;
+}
+
 static void render_sequence(call_t *call) {
   scene_entry_t *e = call_scene(call);
   if (!e)
@@ -416,20 +550,9 @@ static void render_sequence(call_t *call) {
                e->scene->name, now, (unsigned long long)first);
     return;
   }
-  if (uv_is_active((uv_handle_t *)&e->play)) {
-    call_error(call, PROTO_E_INVALID_PARAMS, "scene",
-               "invalid params: scene \"%s\" is playing; sim.pause it first", e->scene->name);
-    return;
-  }
-  if (running_jobs(s, e->scene->name) > 0) {
-    call_error(call, PROTO_E_BUSY, "scene", "busy: scene \"%s\" already has a running job",
-               e->scene->name);
-    return;
-  }
-  if (running_jobs(s, NULL) >= JOBS_MAX_RUNNING) {
-    call_error(call, PROTO_E_LIMIT, NULL,
-               "limit exceeded: at most %d jobs run at once (limits.jobs_running)",
-               JOBS_MAX_RUNNING);
+  if (uv_is_active((uv_handle_t *)&e->play) || running_jobs(s, e->scene->name) > 0 ||
+      running_jobs(s, NULL) >= JOBS_MAX_RUNNING) {
+    job_admit(call, e, dir); /* Answers why. */
     return;
   }
   /* Check the frame params once now, so that a bad job is refused rather than failing later. */
@@ -441,56 +564,161 @@ static void render_sequence(call_t *call) {
     return;
   }
   render_scene_unref(probe.scene);
-  char why[512];
-  if (!dir[0]) {
-    call_error(call, PROTO_E_INVALID_PARAMS, "dir",
-               "invalid params: dir: must name a directory under the data directory");
+  if (job_admit(call, e, dir) != 0)
     return;
-  }
-  if (!s->cfg.data_dir[0]) {
-    call_error(call, PROTO_E_INVALID_PARAMS, "dir",
-               "invalid params: the server has no data directory (--data) to write frames to");
+  seq_job_t *job = job_new(call, e, dir);
+  if (!job)
     return;
-  }
-  if (make_dirs(s->cfg.data_dir, dir, why, sizeof why) != 0) {
-    call_error(call, PROTO_E_INVALID_PARAMS, "dir", "invalid params: dir: %s", why);
-    return;
-  }
-
-  seq_job_t *job = calloc(1, sizeof *job);
-  cJSON *params = cJSON_Duplicate(p, 1);
-  if (!job || !params) {
-    free(job);
-    cJSON_Delete(params);
-    call_error(call, PROTO_E_INTERNAL, NULL, "internal error: out of memory");
-    return;
-  }
-  job->srv = s;
-  job->id = ++s->next_job_id;
-  job->conn = call->conn;
-  snprintf(job->scene, sizeof job->scene, "%s", e->scene->name);
-  snprintf(job->dir, sizeof job->dir, "%s", dir);
-  job->params = params;
   job->ext = ext_of(cJSON_GetObjectItem(p, "format")->valuestring);
   job->first = job->next_frame = first;
   job->last = last;
   job->step = step;
   job->total = (last - first) / step + 1;
-  job->refs = 2; /* The list and the retry timer. */
-  uv_timer_init(s->loop, &job->retry);
-  job->retry.data = job;
-  job->next = s->jobs;
-  s->jobs = job;
-  prune_ended(s);
-
-  cJSON *r = cJSON_CreateObject();
-  cJSON_AddNumberToObject(r, "id", (double)job->id);
-  cJSON_AddNumberToObject(r, "total", (double)job->total);
-  char pattern[300];
-  snprintf(pattern, sizeof pattern, "%s/frame_%%06d.%s", dir, job->ext);
-  cJSON_AddStringToObject(r, "files", pattern);
-  call_result(call, r);
+  call_result(call, job_started(job));
   step_frame(job);
+}
+
+/* ---- sim.bake: the manifest, checked or written on the thread pool ---- */
+
+typedef struct {
+  uv_work_t req;
+  seq_job_t *job;
+  call_t *call;
+  char path[PATH_MAX];
+  cJSON *manifest; /* What bake.json must hold. */
+  int err;         /* errno of a failed read or write. */
+  const char *step;
+  char bad[400]; /* Why the directory is refused; "" when it is fine. */
+} bake_prep_t;
+
+static void prep_work(uv_work_t *req) {
+  bake_prep_t *bp = req->data;
+  size_t len = 0;
+  char *text = files_read(bp->path, 64u << 20, &len);
+  if (!text) {
+    if (errno != ENOENT) {
+      bp->err = errno;
+      bp->step = "read";
+      return;
+    }
+    char *line = proto_print_line(bp->manifest, &len);
+    if (!line) {
+      bp->err = ENOMEM;
+      bp->step = "encode";
+      return;
+    }
+    bp->err = files_write_atomic(bp->path, line, len, &bp->step);
+    free(line);
+    return;
+  }
+  cJSON *have = proto_parse(text, len, NULL, 0);
+  free(text);
+  const cJSON *ver = cJSON_GetObjectItem(have, "volfx_bake");
+  const cJSON *every = cJSON_GetObjectItem(have, "every");
+  const cJSON *want_every = cJSON_GetObjectItem(bp->manifest, "every");
+  if (!cJSON_IsNumber(ver) || ver->valuedouble != PROTO_BAKE_VERSION)
+    snprintf(bp->bad, sizeof bp->bad, "%s is not a volfx bake manifest (version %d)",
+             PROTO_BAKE_MANIFEST, PROTO_BAKE_VERSION);
+  else if (!cJSON_Compare(cJSON_GetObjectItem(have, "scene"),
+                          cJSON_GetObjectItem(bp->manifest, "scene"), 1))
+    snprintf(bp->bad, sizeof bp->bad,
+             "the directory holds a bake of another scene (its %s differs from this scene's "
+             "document); bake into another directory",
+             PROTO_BAKE_MANIFEST);
+  else if (!cJSON_IsNumber(every) || every->valuedouble != want_every->valuedouble)
+    snprintf(bp->bad, sizeof bp->bad,
+             "the directory holds a bake every %.0f frames, not every %.0f",
+             cJSON_IsNumber(every) ? every->valuedouble : 0, want_every->valuedouble);
+  cJSON_Delete(have);
+}
+
+static void prep_done(uv_work_t *req, int status) {
+  bake_prep_t *bp = req->data;
+  seq_job_t *job = bp->job;
+  if (status != 0 || bp->err) {
+    call_error(bp->call, PROTO_E_INTERNAL, "dir", "internal error: cannot %s \"%s/%s\": %s",
+               bp->step ? bp->step : "read", job->dir, PROTO_BAKE_MANIFEST,
+               strerror(bp->err ? bp->err : EIO));
+    job_end(job, JOB_FAILED, "cannot %s its manifest", bp->step ? bp->step : "read");
+  } else if (bp->bad[0]) {
+    call_error(bp->call, PROTO_E_INVALID_PARAMS, "dir", "invalid params: dir \"%s\": %s", job->dir,
+               bp->bad);
+    job_end(job, JOB_FAILED, "%s", bp->bad);
+  } else if (job->state != JOB_RUNNING) {
+    call_result(bp->call, job_started(job)); /* Cancelled meanwhile: job.list says so. */
+  } else {
+    call_result(bp->call, job_started(job));
+    step_frame(job);
+  }
+  cJSON_Delete(bp->manifest);
+  free(bp);
+  job_unref(job);
+}
+
+static void sim_bake(call_t *call) {
+  scene_entry_t *e = call_scene(call);
+  if (!e)
+    return;
+  const cJSON *p = call->params;
+  uint64_t last = (uint64_t)cJSON_GetObjectItem(p, "last")->valuedouble;
+  uint64_t every = (uint64_t)cJSON_GetObjectItem(p, "every")->valuedouble;
+  const char *dir = cJSON_GetObjectItem(p, "dir")->valuestring;
+  double now = scene_frame(e->scene);
+  if ((double)last < now) {
+    call_error(call, PROTO_E_INVALID_PARAMS, "last",
+               "invalid params: scene \"%s\" is at frame %.0f, past last (%llu); load an "
+               "earlier snapshot or re-create it",
+               e->scene->name, now, (unsigned long long)last);
+    return;
+  }
+  if (job_admit(call, e, dir) != 0)
+    return;
+  bake_prep_t *bp = calloc(1, sizeof *bp);
+  char file[300], why[512];
+  snprintf(file, sizeof file, "%s/%s", dir, PROTO_BAKE_MANIFEST);
+  if (bp) {
+    bp->manifest = cJSON_CreateObject();
+    cJSON_AddNumberToObject(bp->manifest, "volfx_bake", PROTO_BAKE_VERSION);
+    cJSON_AddNumberToObject(bp->manifest, "every", (double)every);
+    cJSON *key = proto_bake_key(e->scene->doc);
+    if (!key || !cJSON_AddItemToObject(bp->manifest, "scene", key)) {
+      cJSON_Delete(key);
+      cJSON_Delete(bp->manifest);
+      free(bp);
+      bp = NULL;
+    }
+  }
+  if (!bp) {
+    call_error(call, PROTO_E_INTERNAL, NULL, "internal error: out of memory");
+    return;
+  }
+  if (datapath_resolve(call->srv->cfg.data_dir, file, 0, bp->path, sizeof bp->path, why, sizeof why,
+                       NULL) != 0) {
+    cJSON_Delete(bp->manifest);
+    free(bp);
+    call_error(call, PROTO_E_INVALID_PARAMS, "dir", "invalid params: dir: %s", why);
+    return;
+  }
+  seq_job_t *job = job_new(call, e, dir);
+  if (!job) {
+    cJSON_Delete(bp->manifest);
+    free(bp);
+    return;
+  }
+  job->bake = 1;
+  job->every = every;
+  job->last = last;
+  job->first = (uint64_t)now;
+  job->total = bake_total((uint64_t)now, last, every);
+  job->next_frame = (uint64_t)now % every == 0 ? (uint64_t)now : next_of(job, (uint64_t)now);
+  job->refs++; /* Held by the manifest's check. */
+  bp->job = job;
+  bp->call = call;
+  bp->req.data = bp;
+  if (uv_queue_work(call->srv->loop, &bp->req, prep_work, prep_done) != 0) {
+    bp->err = EAGAIN;
+    prep_done(&bp->req, 0);
+  }
 }
 
 static void job_list(call_t *call) {
@@ -567,6 +795,29 @@ static const sch_field_t sequence_params[] = {
      .max = 200,
      .flags = SCH_REQUIRED},
     {0}};
+static const sch_field_t bake_params[] = {
+    PARAM_SCENE,
+    {.name = "dir",
+     .type = SCH_STRING,
+     .desc = "Directory under the data directory for the bake: bake.json and the snapshots "
+             "dir/frame_NNNNNN.snap (six or more digits); created when missing.",
+     .max = 200,
+     .flags = SCH_REQUIRED},
+    {.name = "last",
+     .type = SCH_INTEGER,
+     .desc = "The shot's last frame: the scene is stepped from its current frame to it.",
+     .unit = "frames",
+     .min = 0,
+     .max = 9007199254740991.0,
+     .flags = SCH_REQUIRED},
+    {.name = "every",
+     .type = SCH_INTEGER,
+     .desc = "A snapshot at every frame that is a multiple of this, and at last.",
+     .unit = "frames",
+     .min = 1,
+     .max = 1e6,
+     .def = 24},
+    {0}};
 static const sch_field_t list_params[] = {{0}};
 static const sch_field_t cancel_params[] = {{.name = "id",
                                              .type = SCH_INTEGER,
@@ -589,6 +840,18 @@ const method_t method_render_sequence = {
     .result = "{id, total, files}: the job's id, the number of frames, the files' name pattern",
     .errors = sequence_errors,
     .handler = render_sequence};
+
+static const int bake_errors[] = {PROTO_E_UNAUTHORIZED, PROTO_E_NOT_FOUND, PROTO_E_BUSY,
+                                  PROTO_E_LIMIT, 0};
+
+const method_t method_sim_bake = {
+    .name = "sim.bake",
+    .summary = "Starts a job that steps the scene to last, writing a snapshot every 'every' "
+               "frames and at last, with the bake's manifest; job.progress notifications follow.",
+    .params = &(sch_field_t){.type = SCH_OBJECT, .fields = bake_params},
+    .result = "{id, total, files}: the job's id, the number of snapshots, their name pattern",
+    .errors = bake_errors,
+    .handler = sim_bake};
 
 const method_t method_job_list = {
     .name = "job.list",

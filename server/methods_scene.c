@@ -106,7 +106,7 @@ static void scene_get_m(call_t *call) {
 }
 
 static void play_start(scene_entry_t *e, double rate);
-static void play_stop(scene_entry_t *e);
+static int play_stop(scene_entry_t *e);
 
 static void scene_set_m(call_t *call) {
   scene_entry_t *e = call_scene(call);
@@ -269,10 +269,18 @@ static void play_start(scene_entry_t *e, double rate) {
   set_playing(e, 1);
 }
 
-static void play_stop(scene_entry_t *e) {
+/* Stops playing. The steps the fluid and the cloud still owe the clock are taken now; returns
+ * whether a simulation has steps queued. */
+static int play_stop(scene_entry_t *e) {
   uv_timer_stop(&e->play);
   e->rate = 0;
   set_playing(e, 0);
+  int fluid = fluid_wants_step(e), cloud = cloud_wants_step(e);
+  if (cloud)
+    cloud_submit_step(e->srv, e, 0, NULL);
+  if (fluid)
+    fluid_submit_step(e->srv, e, 0, scene_dt(e->scene), NULL);
+  return fluid || cloud;
 }
 
 static void sim_play(call_t *call) {
@@ -305,23 +313,18 @@ static void pause_done(job_t *j) {
 }
 
 /*
- * Stops the play timer. The steps the fluid and the cloud still owe the clock (ticks that found
- * a job running) are taken now, and the answer waits behind them, as do the connection's next
+ * Stops playing. The steps the fluid and the cloud still owe the clock (ticks that found a job
+ * running) are taken now, and the answer waits behind them, as do the connection's next
  * requests: what they read is the state at the frame the answer reports.
  */
 static void sim_pause(call_t *call) {
   scene_entry_t *e = call_scene(call);
   if (!e)
     return;
-  play_stop(e);
-  int fluid = fluid_wants_step(e), cloud = cloud_wants_step(e);
-  if (cloud)
-    cloud_submit_step(call->srv, e, 0, NULL);
-  if (fluid)
-    fluid_submit_step(call->srv, e, 0, scene_dt(e->scene), NULL);
+  int stepping = play_stop(e);
   cJSON *r = clock_json(e);
   cJSON_AddBoolToObject(r, "playing", 0);
-  pause_job_t *pj = (fluid || cloud) ? calloc(1, sizeof *pj) : NULL;
+  pause_job_t *pj = stepping ? calloc(1, sizeof *pj) : NULL;
   if (pj) {
     pj->call = call;
     pj->result = r;

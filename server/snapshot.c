@@ -20,9 +20,19 @@
 #include "defer.h"
 #include "dispatch.h"
 #include "files.h"
+#include "snapshot.h"
 
 #define SNAPSHOT_VERSION 1
 #define SNAPSHOT_MAX_BYTES (256u << 20)
+
+/* What a snapshot written holds: the header line and references to the state after it. */
+struct snapshot_out {
+  char *text; /* The header line. */
+  size_t len;
+  cloud_cells_t *cells; /* NULL: no cloud section. */
+  density_grid_t *density;
+  particles_t *particles; /* NULL: a fluid section of no particles. */
+};
 
 typedef struct snap_work {
   uv_work_t req;
@@ -30,16 +40,17 @@ typedef struct snap_work {
   char path[PATH_MAX];
   char file[256]; /* The client's name for it. */
   char scene[64];
-  char *text; /* save: the bytes to write; load: the bytes read. */
-  size_t len;
   int err; /* errno of the failed step, or 0. */
   const char *step;
-  /* The sections: save writes these (references) after the header; load reads them. */
+  snapshot_out_t *out; /* save: what is written. */
+  size_t written;      /* save: the file's size. */
+  /* load: the bytes read and the sections found in them. */
+  char *text;
+  size_t len;
   cloud_cells_t *cells;
   density_grid_t *density;
-  particles_t *particles; /* NULL: no particles (save), no fluid section (load). */
-  int fluid;              /* save: write a fluid section. */
-  char bad[160];          /* load: why the sections are refused, "" when they are fine. */
+  particles_t *particles; /* NULL: no fluid section. */
+  char bad[160];          /* Why the sections are refused, "" when they are fine. */
 } snap_work_t;
 
 /* ---- The cloud section: hum, act and cld as packed little-endian 64-bit words (rows of
@@ -202,43 +213,95 @@ static void fluid_unsection(snap_work_t *w, const cJSON *sec, const unsigned cha
   }
 }
 
-/* Thread pool: writes the snapshot next to its final name, then renames it into place. */
-static void save_work(uv_work_t *req) {
-  snap_work_t *w = req->data;
+int snapshot_out_write(snapshot_out_t *o, const char *path, size_t *bytes, const char **step) {
   char tmp[PATH_MAX + 32];
-  int fd = files_temp_beside(w->path, tmp, sizeof tmp, 0600);
+  int fd = files_temp_beside(path, tmp, sizeof tmp, 0600);
   if (fd < 0) {
-    w->err = errno;
-    w->step = "create";
-    return;
+    *step = "create";
+    return errno;
   }
-  unsigned char *sec = w->cells ? cloud_section(w->cells, w->density) : NULL;
-  unsigned char *fsec = w->fluid ? fluid_section(w->particles) : NULL;
-  if ((w->cells && !sec) || (w->fluid && !fsec)) {
-    w->err = ENOMEM;
-    w->step = "encode";
+  unsigned char *sec = o->cells ? cloud_section(o->cells, o->density) : NULL;
+  unsigned char *fsec = fluid_section(o->particles);
+  int err;
+  if ((o->cells && !sec) || !fsec) {
+    err = ENOMEM;
+    *step = "encode";
   } else {
-    w->err = files_write_all(fd, w->text, w->len);
-    if (!w->err && sec)
-      w->err = files_write_all(fd, sec, cloud_section_bytes(w->cells));
-    if (!w->err && fsec)
-      w->err = files_write_all(fd, fsec, fluid_section_bytes(w->particles));
-    w->step = "write";
+    err = files_write_all(fd, o->text, o->len);
+    if (!err && sec)
+      err = files_write_all(fd, sec, cloud_section_bytes(o->cells));
+    if (!err)
+      err = files_write_all(fd, fsec, fluid_section_bytes(o->particles));
+    *step = "write";
   }
   free(sec);
   free(fsec);
-  if (w->err) {
+  if (err) {
     close(fd);
     unlink(tmp);
-    return;
+    return err;
   }
-  if (w->cells)
-    w->len += cloud_section_bytes(w->cells);
-  w->len += fluid_section_bytes(w->particles);
-  w->err = files_finish_atomic(fd, tmp, w->path, &w->step);
+  *bytes =
+      o->len + (o->cells ? cloud_section_bytes(o->cells) : 0) + fluid_section_bytes(o->particles);
+  return files_finish_atomic(fd, tmp, path, step);
+}
+
+void snapshot_out_free(snapshot_out_t *o) {
+  if (!o)
+    return;
+  free(o->text);
+  cloud_cells_unref(o->cells);
+  density_grid_unref(o->density);
+  particles_unref(o->particles);
+  free(o);
+}
+
+snapshot_out_t *snapshot_out_new(const scene_t *s) {
+  snapshot_out_t *o = calloc(1, sizeof *o);
+  if (!o)
+    return NULL;
+  cJSON *head = cJSON_CreateObject();
+  cJSON_AddNumberToObject(head, "volfx_snapshot", SNAPSHOT_VERSION);
+  cJSON_AddStringToObject(head, "name", s->name);
+  cJSON_AddItemToObject(head, "scene", cJSON_Duplicate(s->doc, 1));
+  cJSON *sections = cJSON_AddArrayToObject(head, "sections");
+  if (s->cloud_cells && s->cloud_density) {
+    /* The cells and density are immutable: the thread pool reads them through references. */
+    o->cells = cloud_cells_ref(s->cloud_cells);
+    o->density = density_grid_ref(s->cloud_density);
+    cJSON *sec = cJSON_CreateObject();
+    cJSON_AddStringToObject(sec, "name", "cloud");
+    cJSON_AddNumberToObject(sec, "bytes", (double)cloud_section_bytes(o->cells));
+    cJSON *dims = cJSON_AddArrayToObject(sec, "dims");
+    for (int i = 0; i < 3; i++)
+      cJSON_AddItemToArray(dims, cJSON_CreateNumber(o->cells->n[i]));
+    cJSON_AddNumberToObject(sec, "step", (double)o->cells->step);
+    cJSON_AddItemToArray(sections, sec);
+  }
+  /* The particles, also immutable; a section of none says the scene had none. */
+  o->particles = particles_ref(s->particles);
+  cJSON *fsec = cJSON_CreateObject();
+  cJSON_AddStringToObject(fsec, "name", "fluid");
+  cJSON_AddNumberToObject(fsec, "bytes", (double)fluid_section_bytes(o->particles));
+  cJSON_AddNumberToObject(fsec, "count", o->particles ? o->particles->count : 0);
+  cJSON_AddItemToArray(sections, fsec);
+  o->text = proto_print_line(head, &o->len);
+  cJSON_Delete(head);
+  if (!o->text) {
+    snapshot_out_free(o);
+    return NULL;
+  }
+  return o;
+}
+
+/* Thread pool: writes the snapshot next to its final name, then renames it into place. */
+static void save_work(uv_work_t *req) {
+  snap_work_t *w = req->data;
+  w->err = snapshot_out_write(w->out, w->path, &w->written, &w->step);
 }
 
 static void snap_work_free(snap_work_t *w) {
+  snapshot_out_free(w->out);
   free(w->text);
   cloud_cells_unref(w->cells);
   density_grid_unref(w->density);
@@ -255,7 +318,7 @@ static void save_done(uv_work_t *req, int status) {
   } else {
     cJSON *r = cJSON_CreateObject();
     cJSON_AddStringToObject(r, "file", w->file);
-    cJSON_AddNumberToObject(r, "bytes", (double)w->len);
+    cJSON_AddNumberToObject(r, "bytes", (double)w->written);
     call_result(call, r);
   }
   snap_work_free(w);
@@ -290,35 +353,8 @@ static void scene_save(call_t *call) {
   snap_work_t *w = work_for(call, 0);
   if (!w)
     return;
-  cJSON *head = cJSON_CreateObject();
-  cJSON_AddNumberToObject(head, "volfx_snapshot", SNAPSHOT_VERSION);
-  cJSON_AddStringToObject(head, "name", e->scene->name);
-  cJSON_AddItemToObject(head, "scene", cJSON_Duplicate(e->scene->doc, 1));
-  cJSON *sections = cJSON_AddArrayToObject(head, "sections");
-  if (e->scene->cloud_cells && e->scene->cloud_density) {
-    /* The cells and density are immutable: the thread pool reads them through references. */
-    w->cells = cloud_cells_ref(e->scene->cloud_cells);
-    w->density = density_grid_ref(e->scene->cloud_density);
-    cJSON *sec = cJSON_CreateObject();
-    cJSON_AddStringToObject(sec, "name", "cloud");
-    cJSON_AddNumberToObject(sec, "bytes", (double)cloud_section_bytes(w->cells));
-    cJSON *dims = cJSON_AddArrayToObject(sec, "dims");
-    for (int i = 0; i < 3; i++)
-      cJSON_AddItemToArray(dims, cJSON_CreateNumber(w->cells->n[i]));
-    cJSON_AddNumberToObject(sec, "step", (double)w->cells->step);
-    cJSON_AddItemToArray(sections, sec);
-  }
-  /* The particles, also immutable; a section of none says the scene had none. */
-  w->fluid = 1;
-  w->particles = particles_ref(e->scene->particles);
-  cJSON *fsec = cJSON_CreateObject();
-  cJSON_AddStringToObject(fsec, "name", "fluid");
-  cJSON_AddNumberToObject(fsec, "bytes", (double)fluid_section_bytes(w->particles));
-  cJSON_AddNumberToObject(fsec, "count", w->particles ? w->particles->count : 0);
-  cJSON_AddItemToArray(sections, fsec);
-  w->text = proto_print_line(head, &w->len);
-  cJSON_Delete(head);
-  if (!w->text) {
+  w->out = snapshot_out_new(e->scene);
+  if (!w->out) {
     snap_work_free(w);
     call_error(call, PROTO_E_INTERNAL, NULL, "internal error: out of memory");
     return;
