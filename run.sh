@@ -7,8 +7,9 @@
 set -euo pipefail
 cd "$(dirname "$0")"
 
+# slurm-wlm and munge: the render-farm test brings up a private one-node Slurm cluster.
 packages=(build-essential cmake pkg-config libuv1-dev libcjson-dev libpng-dev zlib1g-dev
-          ocl-icd-opencl-dev opencl-headers pocl-opencl-icd python3)
+          ocl-icd-opencl-dev opencl-headers pocl-opencl-icd python3 slurm-wlm munge)
 
 install_missing() {
   local missing=()
