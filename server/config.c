@@ -30,6 +30,8 @@ static const char usage[] =
     "  --idle-timeout S     close connections idle this long (default 300; 0 never)\n"
     "  --max-connections N  connection limit (default 256)\n"
     "  --log-level L        debug, info, warn, error or quiet (default info)\n"
+    "  --precompile         compile and warm every kernel into the kernel cache ($POCL_CACHE_DIR,\n"
+    "                       else ~/.cache/volfx/pocl), then exit: for machine images\n"
     "  --version, --help\n";
 
 static int copy_str(char *dst, size_t cap, const char *src, const char *what) {
@@ -100,6 +102,7 @@ enum {
   OPT_IDLE,
   OPT_MAXCONN,
   OPT_LOGLEVEL,
+  OPT_PRECOMPILE,
   OPT_VERSION,
   OPT_HELP
 };
@@ -118,6 +121,7 @@ static const struct option long_options[] = {
     {"idle-timeout", required_argument, 0, OPT_IDLE},
     {"max-connections", required_argument, 0, OPT_MAXCONN},
     {"log-level", required_argument, 0, OPT_LOGLEVEL},
+    {"precompile", no_argument, 0, OPT_PRECOMPILE},
     {"version", no_argument, 0, OPT_VERSION},
     {"help", no_argument, 0, OPT_HELP},
     {0, 0, 0, 0},
@@ -137,6 +141,9 @@ static int apply_option(config_t *c, int opt, const char *arg) {
     return copy_str(c->token, sizeof c->token, arg, "--token");
   case OPT_INSECURE:
     c->insecure = 1;
+    return CONFIG_OK;
+  case OPT_PRECOMPILE:
+    c->precompile = 1;
     return CONFIG_OK;
   case OPT_DEVICE:
     return copy_str(c->device, sizeof c->device, arg, "--device");

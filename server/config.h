@@ -15,6 +15,7 @@ typedef struct config {
   char data_dir[1024];   /* Empty: no data directory (file methods refused). */
   char token[256];       /* Empty: no authentication. */
   int insecure;          /* Allow a non-loopback listener without a token. */
+  int precompile;        /* Compile and warm every kernel into the cache, then exit. */
   char device[64];       /* "cpu", "gpu", an index, or empty for the default. */
   char kernels_dir[1024];
   char scene[1024]; /* Preset name or file for the "main" scene; empty for defaults. */
