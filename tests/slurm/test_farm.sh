@@ -123,18 +123,16 @@ log "one process: volfx batch $preset 0..$rq_last"
 
 # 1. bake + array, with a precompile job in front.
 cd "$tmp"
-pre_opt=()
-"$bin/volfxd" --help 2>&1 | grep -q -- --precompile && pre_opt=(--precompile)
-log "farm: volfx-submit ${pre_opt[*]} --chunk 16 (4 tasks)"
+log "farm: volfx-submit --precompile --chunk 16 (4 tasks)"
 ids=$("$submit" "$preset" -s 0 -e "$last" -o "$tmp/farm/f_####.png" --chunk 16 --cpus 1 \
-  "${pre_opt[@]}" "${size[@]}") || fail "volfx-submit failed"
+  --precompile "${size[@]}") || fail "volfx-submit failed"
 echo "$ids"
 pre=$(awk '$1 == "precompile" { print $2 }' <<<"$ids")
 bake=$(awk '$1 == "bake" { print $2 }' <<<"$ids")
 render=$(awk '$1 == "render" { print $2 }' <<<"$ids")
-[ -n "$bake" ] && [ -n "$render" ] || fail "volfx-submit printed no job ids"
+[ -n "$pre" ] && [ -n "$bake" ] && [ -n "$render" ] || fail "volfx-submit printed no job ids"
 wait_idle 300
-[ ${#pre_opt[@]} -eq 0 ] || expect_states "$pre" COMPLETED 1
+expect_states "$pre" COMPLETED 1
 expect_states "$bake" COMPLETED 1
 expect_states "$render" COMPLETED 4
 [ -f "$tmp/farm/bake/bake.json" ] || fail "the bake wrote no bake.json"
@@ -142,7 +140,20 @@ same_frames "$tmp/farm" "$tmp/ref" 0 "$last"
 for t in 0 1 2 3; do
   grep -q "done in" "$tmp/farm/logs/volfx-farm-${render}_$t.log" || fail "task $t's log has no end"
 done
+grep -q "compiled into $VOLFX_POCL_CACHE" "$tmp/farm/logs/volfx-farm-precompile-$pre.log" ||
+  fail "the precompile job did not compile into the shared cache"
 log "farm: 64 frames from 4 tasks equal the one-process render"
+
+# The same submission again finds the bake complete and every frame done: nothing rewritten.
+find "$tmp/farm" -maxdepth 1 -name 'f_*.png' -printf '%f %T@\n' | sort >"$tmp/farm-before.txt"
+ids=$("$submit" "$preset" -s 0 -e "$last" -o "$tmp/farm/f_####.png" --chunk 16 --cpus 1 "${size[@]}") ||
+  fail "volfx-submit failed"
+render=$(awk '$1 == "render" { print $2 }' <<<"$ids")
+wait_idle 120
+expect_states "$render" COMPLETED 4
+find "$tmp/farm" -maxdepth 1 -name 'f_*.png' -printf '%f %T@\n' | sort | cmp -s - "$tmp/farm-before.txt" ||
+  fail "submitting a finished shot again rewrote frames"
+log "farm: a second submission of the finished shot rewrote nothing"
 
 # 2. requeue one task in the middle of its chunk: one task renders a longer shot of 240 frames
 # on one CPU, re-simulating from frame 0 (no bake), so that its chunk lasts long enough.
