@@ -1,3 +1,4 @@
+# shellcheck shell=bash
 # A one-node Slurm cluster on 127.0.0.1 inside a private directory, for the farm test and the
 # farm benchmark. Source this file, then:
 #   slurm_cluster_up DIR     start munged, slurmctld and slurmd with everything under DIR,
@@ -94,8 +95,8 @@ CONF
   export SLURM_CONF=$dir/slurm.conf
   /usr/sbin/slurmctld -f "$SLURM_CONF" -i || { echo "cluster: slurmctld did not start" >&2; return 1; }
   /usr/sbin/slurmd -f "$SLURM_CONF" || { echo "cluster: slurmd did not start" >&2; return 1; }
-  local i state
-  for i in $(seq 1 300); do
+  local state
+  for _ in $(seq 1 300); do
     state=$(sinfo -h -n "$host" -o %t 2>/dev/null || true)
     case "$state" in idle | mix | alloc) return 0 ;; esac
     sleep 0.2
@@ -106,13 +107,13 @@ CONF
 }
 
 _slurm_stop_pids() { # _slurm_stop_pids PIDFILE...: TERM them all, wait up to 10 s, then KILL
-  local f pid pids=() i alive
+  local f pid pids=() alive
   for f in "$@"; do
     [ -s "$f" ] || continue
     pid=$(cat "$f" 2>/dev/null) || continue
     [ -n "$pid" ] && kill -TERM "$pid" 2>/dev/null && pids+=("$pid")
   done
-  for i in $(seq 1 100); do
+  for _ in $(seq 1 100); do
     alive=0
     for pid in "${pids[@]}"; do kill -0 "$pid" 2>/dev/null && alive=1; done
     [ $alive -eq 1 ] || return 0
