@@ -124,12 +124,26 @@ __attribute__((format(printf, 3, 4))) static int say(const farm_t *f, int status
   return status;
 }
 
+/* Formats a message into 'buf', cut to 'cap' bytes when longer. */
+__attribute__((format(printf, 3, 4))) static void text(char *buf, size_t cap, const char *fmt,
+                                                       ...) {
+  va_list ap;
+  va_start(ap, fmt);
+  vsnprintf(buf, cap, fmt, ap);
+  va_end(ap);
+}
+
 /* Reports a command-line mistake about 'arg' and returns EXIT_USAGE. */
 static int usage(const farm_t *f, const char *fmt, const char *arg) {
   fprintf(stderr, "volfx %s: ", f->cmd);
   fprintf(stderr, fmt, arg != NULL ? arg : "");
   fputs(" (see volfx --help)\n", stderr);
   return EXIT_USAGE;
+}
+
+/* "SIGINT" or "SIGTERM": the signals that stop a run. */
+static const char *signal_name(int sig) {
+  return sig == SIGINT ? "SIGINT" : "SIGTERM";
 }
 
 static void on_stop(int sig) {
@@ -348,17 +362,17 @@ static int write_atomic(const char *path, const void *data, size_t n, mode_t mod
   char dir[PATH_CAP], tmp[PATH_CAP], bad[PATH_CAP];
   const char *base = split_path(path, dir, sizeof(dir));
   if (make_dirs(dir, bad, sizeof(bad)) != 0) {
-    snprintf(why, cap, "cannot create directory %s: %s", bad, strerror(errno));
+    text(why, cap, "cannot write %s: %s: %s", path, bad, strerror(errno));
     return -1;
   }
   remove_stale_parts(dir, base);
   if (snprintf(tmp, sizeof(tmp), "%s/.%s.part.XXXXXX", dir, base) >= (int)sizeof(tmp)) {
-    snprintf(why, cap, "cannot write %s: %s", path, strerror(ENAMETOOLONG));
+    text(why, cap, "cannot write %s: %s", path, strerror(ENAMETOOLONG));
     return -1;
   }
   int fd = mkostemp(tmp, O_CLOEXEC);
   if (fd < 0) {
-    snprintf(why, cap, "cannot write %s: %s", path, strerror(errno));
+    text(why, cap, "cannot write %s: %s", path, strerror(errno));
     return -1;
   }
   const char *p = data;
@@ -387,7 +401,7 @@ static int write_atomic(const char *path, const void *data, size_t n, mode_t mod
   }
   if (err != 0) {
     unlink(tmp);
-    snprintf(why, cap, "cannot write %s: %s", path, strerror(err));
+    text(why, cap, "cannot write %s: %s", path, strerror(err));
     return -1;
   }
   int dfd = open(dir, O_RDONLY | O_DIRECTORY | O_CLOEXEC);
@@ -499,7 +513,7 @@ static int call(farm_t *f, const char *method, cJSON *params, cJSON **result,
            e.message[0] != '\0' ? e.message : volfx_strerror(rc),
            e.path[0] != '\0' ? " (path " : "", e.path, e.path[0] != '\0' ? ")" : "");
   if (stop_signal != 0) {
-    snprintf(f->why, sizeof(f->why), "interrupted by %s", strsignal(stop_signal));
+    snprintf(f->why, sizeof(f->why), "interrupted by %s", signal_name(stop_signal));
   }
   return rc;
 }
@@ -607,7 +621,7 @@ static int read_listen_line(farm_t *f, int fd, int *port) {
     }
     if (stop_signal != 0) {
       return say(f, EXIT_FAIL, "interrupted by %s while volfxd was starting",
-                 strsignal(stop_signal));
+                 signal_name(stop_signal));
     }
     int64_t left = deadline - now_ms();
     if (left <= 0) {
@@ -1124,7 +1138,7 @@ static int batch_frames(farm_t *f, batch_t *b) {
   for (uint64_t frame = b->first; frame <= b->last; frame += b->step) {
     snprintf(f->where, sizeof(f->where), "frame %" PRIu64 ": ", frame);
     if (stop_signal != 0) {
-      return say(f, EXIT_FAIL, "interrupted by %s", strsignal(stop_signal));
+      return say(f, EXIT_FAIL, "interrupted by %s", signal_name(stop_signal));
     }
     expand_pattern(b->pattern, frame, path, sizeof(path));
     if (!b->overwrite && file_whole(path, b->raw_bytes)) {
@@ -1180,7 +1194,7 @@ static int batch_run(farm_t *f, batch_t *b, const char *scene, const char *bake_
   split_path(path, dir, sizeof(dir));
   if (make_dirs(dir, bad, sizeof(bad)) != 0) {
     cJSON_Delete(manifest);
-    return say(f, EXIT_FAIL, "cannot create directory %s: %s", bad, strerror(errno));
+    return say(f, EXIT_FAIL, "cannot write %s: %s: %s", path, bad, strerror(errno));
   }
   if (data[0] == '\0') {
     const char *tmp = getenv("TMPDIR");
@@ -1274,7 +1288,7 @@ static int bake_job(farm_t *f, const char *dir, uint64_t last, uint64_t every, d
   cJSON_Delete(r);
   for (;;) {
     if (stop_signal != 0) {
-      return say(f, EXIT_FAIL, "interrupted by %s", strsignal(stop_signal));
+      return say(f, EXIT_FAIL, "interrupted by %s", signal_name(stop_signal));
     }
     cJSON *msg = NULL;
     int rc = volfx_next_notification(f->conn, "job.progress", 500, &msg, NULL);
