@@ -252,6 +252,10 @@ def bake_then_batch(s):
                            "-e", "9", "-o", "x/f_#.png", "--bake", "bk")
         s.check(rc == 2 and "bk" in err and outside in err,
                 "a snapshot outside the bake's parent: usage error naming both", err)
+        rc, _, err = volfx(s, "bake", os.path.join(outside, "frame_000008.snap"), "-e", "9",
+                           "-o", "bk2")
+        s.check(rc == 2 and outside in err, "bake: the same usage error", err)
+        s.check(not os.path.exists(path("bk2")), "and no bake directory made for it")
     finally:
         shutil.rmtree(outside, ignore_errors=True)
     s.eq(leftovers(), [], "no temporary files left")
