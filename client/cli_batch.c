@@ -197,7 +197,9 @@ static int list_snapshots(farm_t *f, const char *dir) {
     f->snaps[f->nsnaps++] = frame;
   }
   closedir(d);
-  qsort(f->snaps, f->nsnaps, sizeof(*f->snaps), cmp_u64);
+  if (f->nsnaps > 1) {
+    qsort(f->snaps, f->nsnaps, sizeof(*f->snaps), cmp_u64);
+  }
   return 0;
 }
 
@@ -322,7 +324,7 @@ typedef struct batch {
 /* Turns the option table into 'b'. Returns 0 or EXIT_USAGE after saying why. */
 static int batch_options(farm_t *f, batch_t *b, const char *val[A_COUNT]) {
   uint64_t w = 512, h = 512, png_level = 0, aa = 0;
-  if (val[A_FIRST] == NULL || val[A_LAST] == NULL || val[A_OUT] == NULL) {
+  if (val[A_FIRST] == NULL || val[A_LAST] == NULL || val[A_OUT] == NULL || !val[A_OUT][0]) {
     return usage(f, "needs -s FIRST, -e LAST and -o PATTERN%s", NULL);
   }
   static const int frames[] = {A_FIRST, A_LAST, A_STEP};
@@ -376,11 +378,11 @@ static int batch_options(farm_t *f, batch_t *b, const char *val[A_COUNT]) {
     cJSON *layers = cJSON_AddArrayToObject(b->render, "layers");
     for (const char *s = val[A_LAYERS]; *s != '\0';) {
       size_t n = strcspn(s, ",");
-      char word[64];
-      if (n > 0 && n < sizeof(word)) {
-        snprintf(word, sizeof(word), "%.*s", (int)n, s);
+      char *word = n > 0 ? strndup(s, n) : NULL;
+      if (word != NULL) {
         cJSON_AddItemToArray(layers, cJSON_CreateString(word));
       }
+      free(word);
       s += n + (s[n] == ',');
     }
   }
@@ -741,7 +743,7 @@ int cli_bake(int argc, char **argv) {
   if (rc != 0) {
     return rc;
   }
-  if (val[A_LAST] == NULL || val[A_OUT] == NULL) {
+  if (val[A_LAST] == NULL || val[A_OUT] == NULL || !val[A_OUT][0]) {
     return usage(&f, "needs -e LAST and -o DIR%s", NULL);
   }
   if (!farm_parse_u64(val[A_LAST], 0, FRAME_MAX, &last)) {

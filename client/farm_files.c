@@ -109,9 +109,9 @@ const char *farm_split_path(const char *path, char *dir, size_t cap) {
  */
 int farm_make_dirs(const char *path, char *bad, size_t cap) {
   char buf[FARM_PATH_CAP];
-  if (snprintf(buf, sizeof(buf), "%s", path) >= (int)sizeof(buf)) {
+  if (path[0] == '\0' || snprintf(buf, sizeof(buf), "%s", path) >= (int)sizeof(buf)) {
     snprintf(bad, cap, "%s", path);
-    errno = ENAMETOOLONG;
+    errno = path[0] == '\0' ? ENOENT : ENAMETOOLONG;
     return -1;
   }
   for (char *p = buf + 1;; p++) {
