@@ -27,6 +27,7 @@ import mock  # noqa: E402
 suite = mock.Suite("test_batch", timeout_s=300)
 T = suite.test
 
+ROOT = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 PRESET = "paper-001-flow"
 SIZE = ["-W", "64", "-H", "48"]
 PNG_END = b"\x00\x00\x00\x00IEND\xaeB`\x82"
@@ -57,7 +58,8 @@ def read(*parts):
         return f.read()
 
 
-def frames_in(folder, prefix="f_", count=12, first=0, ext=".png", width=4):
+def frame_names(count=12, first=0, prefix="f_", ext=".png", width=4):
+    """The names f_####.png gives frames first, first + 1, ... (count of them)."""
     return ["%s%0*d%s" % (prefix, width, first + i, ext) for i in range(count)]
 
 
@@ -83,8 +85,8 @@ def same_frames(s, a, b, names, what):
 @T
 def pattern_with_spaces(s):
     out, _ = ok(s, "batch", PRESET, "-s", "0", "-e", "11", "-o", "shot 1/f_####.png", *SIZE)
-    s.eq(sorted(os.listdir(path("shot 1"))), frames_in("shot 1"), "files named by the pattern")
-    for name in frames_in("shot 1"):
+    s.eq(sorted(os.listdir(path("shot 1"))), frame_names(), "files named by the pattern")
+    for name in frame_names():
         data = read("shot 1", name)
         s.check(png_size(data) == (64, 48) and data.endswith(PNG_END),
                 "%s is a whole 64x48 PNG" % name, "%d bytes" % len(data))
@@ -105,14 +107,14 @@ def pattern_with_spaces(s):
 def subranges_equal_the_range(s):
     ok(s, "batch", PRESET, "-s", "0", "-e", "5", "-o", "parts/f_####.png", *SIZE)
     ok(s, "batch", PRESET, "-s", "6", "-e", "11", "-o", "parts/f_####.png", *SIZE)
-    same_frames(s, "shot 1", "parts", frames_in("parts"),
+    same_frames(s, "shot 1", "parts", frame_names(),
                 "frames 0-11 in one run equal 0-5 and 6-11 rendered apart")
 
 
 @T
 def complete_frames_skipped(s):
     folder = path("shot 1")
-    before = {n: os.stat(os.path.join(folder, n)).st_mtime_ns for n in frames_in("shot 1")}
+    before = {n: os.stat(os.path.join(folder, n)).st_mtime_ns for n in frame_names()}
     want5 = read("shot 1", "f_0005.png")
     with open(os.path.join(folder, "f_0005.png"), "r+b") as f:
         f.truncate(len(want5) // 2)  # A frame cut short, as by a full disk.
@@ -125,7 +127,7 @@ def complete_frames_skipped(s):
     s.check("1 frames written, 11 skipped (0..11)" in out, "only the cut frame rendered", out)
     s.check("frame 4: skipped" in err and "frame 5: wrote" in err, "-v says which", err)
     s.eq(read("shot 1", "f_0005.png"), want5, "the cut frame rendered again, the same")
-    after = {n: os.stat(os.path.join(folder, n)).st_mtime_ns for n in frames_in("shot 1")}
+    after = {n: os.stat(os.path.join(folder, n)).st_mtime_ns for n in frame_names()}
     kept = [n for n in before if n != "f_0005.png" and before[n] != after[n]]
     s.eq(kept, [], "complete frames untouched (mtime)")
     s.check(not os.path.exists(stale), "the stale temporary file of frame 5 removed")
@@ -145,7 +147,7 @@ def overwrite(s):
                 "--overwrite")
     s.check("2 frames written, 0 skipped (0..1)" in out, "--overwrite renders them", out)
     s.check(os.stat(os.path.join(folder, "f_0001.png")).st_mtime_ns != before, "a new file")
-    same_frames(s, "shot 1", "parts", frames_in("parts", count=2), "and the same frames")
+    same_frames(s, "shot 1", "parts", frame_names(count=2), "and the same frames")
 
 
 @T
@@ -226,7 +228,7 @@ def bake_then_batch(s):
     out, err = ok(s, "batch", PRESET, "-s", "16", "-e", "23", "-o", "baked/f_####.png", *SIZE,
                   "--bake", "bk", "-v")
     s.check("bk/frame_000016.snap" in err, "it starts from the snapshot of frame 16", err)
-    same_frames(s, "nobake", "baked", frames_in("baked", count=8, first=16),
+    same_frames(s, "nobake", "baked", frame_names(count=8, first=16),
                 "frames 16-23 from the bake equal those simulated from frame 0")
     # A bake of another scene, or a batch of another scene with this bake: refused.
     rc, _, err = volfx(s, "bake", "demo", "-e", "23", "-k", "8", "-o", "bk")
@@ -240,7 +242,7 @@ def bake_then_batch(s):
     # A snapshot as the scene: it renders from its own frame on.
     ok(s, "batch", "bk/frame_000008.snap", "-s", "8", "-e", "11", "-o", "snap/f_####.png",
        *SIZE)
-    same_frames(s, "shot 1", "snap", frames_in("snap", count=4, first=8),
+    same_frames(s, "shot 1", "snap", frame_names(count=4, first=8),
                 "frames 8-11 from the snapshot of frame 8 equal the batch's")
     rc, _, err = volfx(s, "batch", "bk/frame_000008.snap", "-s", "5", "-e", "9", "-o",
                        "early/f_#.png", *SIZE)
@@ -259,6 +261,40 @@ def bake_then_batch(s):
     finally:
         shutil.rmtree(outside, ignore_errors=True)
     s.eq(leftovers(), [], "no temporary files left")
+
+
+@T
+def private_server_setup(s):
+    """The private volfxd's command line and environment, seen through a wrapper script."""
+    wrapper = path("volfxd-wrapper.sh")
+    with open(wrapper, "w") as f:
+        f.write('#!/bin/sh\nprintf "%%s\\n" "$@" > "%s"\nenv > "%s"\nexec "%s" "$@"\n' %
+                (path("wrapper-args"), path("wrapper-env"), os.path.join(s.bin, "volfxd")))
+    os.chmod(wrapper, 0o755)
+    presets = path("my presets")
+    os.makedirs(presets)
+    shutil.copy(os.path.join(ROOT, "scenes", PRESET + ".json"), os.path.join(presets, "mine.json"))
+    env = {"VOLFX_VOLFXD": wrapper, "SLURM_CPUS_PER_TASK": "3"}
+    saved = os.environ.pop("POCL_MAX_PTHREAD_COUNT", None)
+    try:
+        ok(s, "batch", "mine", "--presets", presets, "-s", "2", "-e", "2", "-o", "mine/f_#.png",
+           *SIZE, env=env)
+    finally:
+        if saved is not None:
+            os.environ["POCL_MAX_PTHREAD_COUNT"] = saved
+    s.eq(read("mine", "f_2.png"), read("shot 1", "f_0002.png"), "a preset from --presets")
+    args = read("wrapper-args").decode().splitlines()
+    child_env = dict(line.split("=", 1) for line in read("wrapper-env").decode().splitlines()
+                     if "=" in line)
+    s.check(args[:2] == ["--listen", "127.0.0.1:0"], "loopback, a port of the kernel's", args)
+    for pair in (["--log-level", "warn"], ["--scene", "mine"], ["--presets", presets]):
+        s.check(any(args[i:i + 2] == pair for i in range(len(args))), "volfxd gets %s" % pair,
+                args)
+    token = child_env.get("VOLFX_TOKEN", "")
+    s.check(len(token) == 32 and all(c in "0123456789abcdef" for c in token),
+            "a random token of 32 hex digits in its environment", token)
+    s.check(token not in " ".join(args), "and not on its command line")
+    s.eq(child_env.get("POCL_MAX_PTHREAD_COUNT"), "3", "PoCL threads from SLURM_CPUS_PER_TASK")
 
 
 def children_of(pid):
