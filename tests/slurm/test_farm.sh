@@ -14,7 +14,7 @@ set -euo pipefail
 
 here=$(cd "$(dirname "${BASH_SOURCE[0]}")" && pwd)
 root=$(cd "$here/../.." && pwd)
-bin=$root/build/bin keep=0
+bin=$root/build/bin keep=0 args=("$@")
 while [ $# -gt 0 ]; do
   case "$1" in
     --bin) bin=$(cd "$2" && pwd); shift 2 ;;
@@ -23,6 +23,13 @@ while [ $# -gt 0 ]; do
   esac
 done
 submit=$root/deploy/slurm/volfx-submit
+
+# Under a time limit of its own, shorter than ctest's TIMEOUT: its SIGTERM runs the cleanup
+# below, which tears the cluster down, where ctest would kill the test outright.
+if [ -z "${VOLFX_FARM_TIMED:-}" ]; then
+  export VOLFX_FARM_TIMED=1
+  exec timeout --kill-after=60 780 bash "$0" "${args[@]}"
+fi
 
 if [ "$(id -u)" -ne 0 ]; then
   echo "SKIP: slurm.test_farm runs slurmd and munged, which needs root"
@@ -46,7 +53,7 @@ cleanup() {
   return $rc
 }
 trap cleanup EXIT
-trap 'exit 130' INT TERM
+trap 'echo "test_farm: stopped by a signal (or out of time)" >&2; exit 130' INT TERM
 
 log() { echo "test_farm: [$((SECONDS - t_start)) s] $*"; }
 fail() {
