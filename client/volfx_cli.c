@@ -94,7 +94,8 @@ static const char usage_text[] =
     "                                at LAST; run again, it resumes from DIR's latest snapshot\n"
     "\n"
     "Exit status: 0 on success, 1 when the server or the connection reported an error (its\n"
-    "message and data.path go to stderr), 2 on a command-line error.\n";
+    "message and data.path go to stderr), 2 on a command-line error. batch and bake stopped\n"
+    "by SIGINT or SIGTERM stop their server first, then end by the same signal.\n";
 
 /* State shared by the commands of one invocation. */
 typedef struct cli {
