@@ -264,6 +264,20 @@ static int check_scene(farm_t *f, const cJSON *manifest, const char *bake_dir) {
 }
 
 /*
+ * Starts the private volfxd on 'data' with the scene: a preset or scene file, or (with
+ * 'snapshot') the snapshot 'file' loaded into the default scene; then checks it against the
+ * bake's 'manifest', when there is one. Returns 0 or EXIT_FAIL after saying why.
+ */
+static int open_scene(farm_t *f, const char *data, const char *scene, int snapshot,
+                      const char *file, const cJSON *manifest, const char *bake_dir) {
+  int rc = farm_server_start(f, data, snapshot ? "" : scene);
+  if (rc == 0 && snapshot && load_snapshot(f, file) != 0) {
+    rc = farm_say(f, EXIT_FAIL, "cannot load %s: %s", scene, f->why);
+  }
+  return rc != 0 ? rc : check_scene(f, manifest, bake_dir);
+}
+
+/*
  * The data directory and the scene's place in it. With 'bake_dir', its parent; a 'snapshot'
  * must then lie inside it ('*file' receives its name relative to it). Else a snapshot's own
  * directory. 'data' receives the directory, '' when the caller should make one. Returns 0,
@@ -565,13 +579,7 @@ static int batch_run(farm_t *f, batch_t *b, const char *scene, const char *bake_
     }
     snprintf(data, sizeof(data), "%s", f->tmp_data);
   }
-  rc = farm_server_start(f, data, snapshot ? "" : scene);
-  if (rc == 0 && snapshot && load_snapshot(f, file) != 0) {
-    rc = farm_say(f, EXIT_FAIL, "cannot load %s: %s", scene, f->why);
-  }
-  if (rc == 0) {
-    rc = check_scene(f, manifest, bake_dir);
-  }
+  rc = open_scene(f, data, scene, snapshot, file, manifest, bake_dir);
   cJSON_Delete(manifest);
   if (rc == 0) {
     rc = apply_antialias(f, b);
@@ -710,13 +718,7 @@ static int bake_run(farm_t *f, const char *scene, const char *dir, uint64_t last
     cJSON_Delete(manifest);
     return farm_say(f, EXIT_FAIL, "cannot list %s: %s", dir, strerror(errno));
   }
-  rc = farm_server_start(f, data, snapshot ? "" : scene);
-  if (rc == 0 && snapshot && load_snapshot(f, file) != 0) {
-    rc = farm_say(f, EXIT_FAIL, "cannot load %s: %s", scene, f->why);
-  }
-  if (rc == 0) {
-    rc = check_scene(f, manifest, dir);
-  }
+  rc = open_scene(f, data, scene, snapshot, file, manifest, dir);
   cJSON_Delete(manifest);
   if (rc != 0) {
     return rc;
