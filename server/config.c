@@ -6,6 +6,7 @@
 #include "config.h"
 
 #include <errno.h>
+#include <stddef.h>
 #include <getopt.h>
 #include <stdio.h>
 #include <stdlib.h>
@@ -174,50 +175,76 @@ static int apply_option(config_t *c, int opt, const char *arg) {
   return CONFIG_ERROR;
 }
 
+#define LIMIT(name, lo, hi, member, kind)                                                          \
+  { name, lo, hi, offsetof(config_t, member), kind }
+
+const config_limit_t config_limits[] = {
+    LIMIT("line_bytes", 1024, 1 << 30, limits.line_bytes, 'z'),
+    LIMIT("frame_side", 1, 16384, limits.frame_side, 'u'),
+    LIMIT("particles", 1, 1 << 26, limits.particles, 'u'),
+    LIMIT("cloud_side", 1, 1024, limits.cloud_side, 'u'),
+    LIMIT("connections", 1, 65536, limits.connections, 'u'),
+    LIMIT("output_bytes", 1 << 20, 1e12, limits.output_bytes, 'z'),
+    LIMIT("output_total_bytes", 1 << 20, 1e13, budget.output_total_bytes, 'z'),
+    LIMIT("render_queue", 1, 65536, render_queue, 'i'),
+    LIMIT("idle_timeout_s", 0, 86400 * 365, idle_timeout_s, 'd'),
+    LIMIT("auth_timeout_s", 0.1, 3600, budget.auth_timeout_s, 'd'),
+    LIMIT("unauthenticated", 1, 65536, budget.unauthenticated, 'u'),
+    LIMIT("auth_failures", 1, 1000, budget.auth_failures, 'u'),
+    LIMIT("scenes", 1, 4096, budget.scenes, 'u'),
+    LIMIT("scene_bytes", 1 << 20, 1e13, budget.scene_bytes, 'z'),
+    LIMIT("keyframes", 1, 1 << 20, budget.keyframes, 'u'),
+    LIMIT("automaton_steps", 1, 1e9, budget.automaton_steps, 'u'),
+    LIMIT("job_frames", 1, 9007199254740991.0, budget.job_frames, 'u'),
+    LIMIT("job_bytes", 1 << 20, 1e15, budget.job_bytes, 'z'),
+    LIMIT("data_reserve_bytes", 0, 1e15, budget.data_reserve_bytes, 'z'),
+    {0},
+};
+
+double config_limit_value(const config_t *c, const config_limit_t *l) {
+  const char *at = (const char *)c + l->offset;
+  switch (l->kind) {
+  case 'z':
+    return (double)*(const size_t *)at;
+  case 'u':
+    return *(const uint32_t *)at;
+  case 'i':
+    return *(const int *)at;
+  default:
+    return *(const double *)at;
+  }
+}
+
+static void limit_set(config_t *c, const config_limit_t *l, double v) {
+  char *at = (char *)c + l->offset;
+  switch (l->kind) {
+  case 'z':
+    *(size_t *)at = (size_t)v;
+    break;
+  case 'u':
+    *(uint32_t *)at = (uint32_t)v;
+    break;
+  case 'i':
+    *(int *)at = (int)v;
+    break;
+  default:
+    *(double *)at = v;
+  }
+}
+
 /* Reads the "limits" object of the config file. */
 static int apply_limits(config_t *c, const cJSON *lim) {
-  static const struct {
-    const char *name;
-    double lo, hi;
-  } keys[] = {{"line_bytes", 1024, 1 << 30}, {"frame_side", 1, 16384},
-              {"particles", 1, 1 << 26},     {"cloud_side", 1, 1024},
-              {"connections", 1, 65536},     {"output_bytes", 1 << 20, 1e12},
-              {"render_queue", 1, 65536}};
   const cJSON *it;
   cJSON_ArrayForEach(it, lim) {
-    size_t k;
-    for (k = 0; k < sizeof keys / sizeof keys[0]; k++)
-      if (strcmp(it->string, keys[k].name) == 0)
-        break;
-    if (k == sizeof keys / sizeof keys[0] || !cJSON_IsNumber(it) ||
-        !(it->valuedouble >= keys[k].lo && it->valuedouble <= keys[k].hi)) {
+    const config_limit_t *l = config_limits;
+    while (l->name && strcmp(it->string, l->name) != 0)
+      l++;
+    if (!l->name || !cJSON_IsNumber(it) ||
+        !(it->valuedouble >= l->lo && it->valuedouble <= l->hi)) {
       fprintf(stderr, "volfxd: config: limits.%s is unknown or out of range\n", it->string);
       return CONFIG_ERROR;
     }
-    double v = it->valuedouble;
-    switch (k) {
-    case 0:
-      c->limits.line_bytes = (size_t)v;
-      break;
-    case 1:
-      c->limits.frame_side = (uint32_t)v;
-      break;
-    case 2:
-      c->limits.particles = (uint32_t)v;
-      break;
-    case 3:
-      c->limits.cloud_side = (uint32_t)v;
-      break;
-    case 4:
-      c->limits.connections = (uint32_t)v;
-      break;
-    case 5:
-      c->limits.output_bytes = (size_t)v;
-      break;
-    case 6:
-      c->render_queue = (int)v;
-      break;
-    }
+    limit_set(c, l, it->valuedouble);
   }
   return CONFIG_OK;
 }
@@ -283,6 +310,17 @@ int config_load(config_t *c, int argc, char **argv) {
   c->idle_timeout_s = 300;
   c->render_queue = 64;
   proto_limits_default(&c->limits);
+  c->budget = (budget_t){.output_total_bytes = (size_t)1 << 30,
+                         .auth_timeout_s = 10,
+                         .unauthenticated = 16,
+                         .auth_failures = 3,
+                         .scenes = 64,
+                         .scene_bytes = (size_t)4 << 30,
+                         .keyframes = 4096,
+                         .automaton_steps = 1000000,
+                         .job_frames = 1000000,
+                         .job_bytes = (size_t)64 << 30,
+                         .data_reserve_bytes = (size_t)1 << 30};
 
   /* The config file is read first so that the command line overrides it. */
   for (int i = 1; i < argc; i++) {

@@ -8,6 +8,21 @@
 
 #include "proto.h"
 
+/* Server-wide budgets and per-client bounds beyond the protocol's own limits. */
+typedef struct budget {
+  size_t output_total_bytes; /* Unsent output and frames in the making, all connections. */
+  double auth_timeout_s;     /* An unauthenticated connection is closed after this long. */
+  uint32_t unauthenticated;  /* Most connections that have not authenticated (with a token). */
+  uint32_t auth_failures;    /* Wrong tokens before the connection is closed. */
+  uint32_t scenes;           /* Most scenes. */
+  size_t scene_bytes;        /* The simulation state of all scenes together, estimated. */
+  uint32_t keyframes;        /* Animation keys in one scene's document. */
+  uint32_t automaton_steps;  /* Most cloud automaton steps one sim.step may ask for. */
+  uint32_t job_frames;       /* Most files one render.sequence or sim.bake job writes. */
+  size_t job_bytes;          /* Most bytes one job writes. */
+  size_t data_reserve_bytes; /* Free space writes under --data leave on its file system. */
+} budget_t;
+
 typedef struct config {
   char listen_host[256]; /* Empty when TCP is disabled ("--listen none"). */
   int listen_port;       /* 0 picks a free port. */
@@ -24,7 +39,23 @@ typedef struct config {
   double idle_timeout_s; /* 0 disables the idle timeout. */
   int render_queue;      /* Most render jobs waiting; more get -32002. */
   proto_limits_t limits;
+  budget_t budget;
 } config_t;
+
+/* One configurable limit: its name in "limits" (config file and server.info), its range, and
+ * where it lives in config_t. */
+typedef struct config_limit {
+  const char *name;
+  double lo, hi;
+  size_t offset; /* Of the value in config_t. */
+  char kind;     /* 'z' size_t, 'u' uint32_t, 'i' int, 'd' double. */
+} config_limit_t;
+
+/* Every limit, in the order server.info lists them; ends with a NULL name. */
+extern const config_limit_t config_limits[];
+
+/* The value of limit 'l' in 'c'. */
+double config_limit_value(const config_t *c, const config_limit_t *l);
 
 enum { CONFIG_OK = 0, CONFIG_EXIT_OK = 1, CONFIG_ERROR = -1 };
 

@@ -11,16 +11,9 @@
 #include "worker.h"
 
 static cJSON *limits_json(const server_t *s) {
-  const config_t *c = &s->cfg;
   cJSON *l = cJSON_CreateObject();
-  cJSON_AddNumberToObject(l, "line_bytes", (double)c->limits.line_bytes);
-  cJSON_AddNumberToObject(l, "frame_side", c->limits.frame_side);
-  cJSON_AddNumberToObject(l, "particles", c->limits.particles);
-  cJSON_AddNumberToObject(l, "cloud_side", c->limits.cloud_side);
-  cJSON_AddNumberToObject(l, "connections", c->limits.connections);
-  cJSON_AddNumberToObject(l, "output_bytes", (double)c->limits.output_bytes);
-  cJSON_AddNumberToObject(l, "idle_timeout_s", c->idle_timeout_s);
-  cJSON_AddNumberToObject(l, "render_queue", c->render_queue);
+  for (const config_limit_t *k = config_limits; k->name; k++)
+    cJSON_AddNumberToObject(l, k->name, config_limit_value(&s->cfg, k));
   cJSON_AddNumberToObject(l, "subscriptions_per_connection", FRAMES_MAX_PER_CONN);
   cJSON_AddNumberToObject(l, "jobs_running", JOBS_MAX_RUNNING);
   return l;
