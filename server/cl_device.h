@@ -28,7 +28,8 @@ typedef struct cl_dev {
 
 /*
  * Opens the device named by 'which': NULL or "cpu" for the first CPU device of any platform,
- * "gpu" for the first GPU device, or a decimal index into all platforms' devices in order.
+ * "gpu" for the first GPU device, or a decimal index into all platforms' devices in order. A
+ * NULL or empty 'which' takes the name from $VOLFX_DEVICE when that is set.
  * Points PoCL's kernel cache at $XDG_CACHE_HOME/volfx/pocl (or ~/.cache/volfx/pocl) first,
  * unless POCL_CACHE_DIR is set. Returns 0, or -1 with a message in 'err' and 'd' zeroed.
  */

@@ -1,7 +1,9 @@
 /*
  * volfxd: reads the configuration, brings up the OpenCL renderer (warming every kernel), the
  * render worker and the 'main' scene, listens, prints "volfxd listening on HOST:PORT" once
- * connections are accepted, and runs the libuv loop until a signal or server.shutdown.
+ * connections are accepted (and tells a service manager it is ready), and runs the libuv loop
+ * until SIGINT, SIGTERM or server.shutdown. SIGHUP re-reads the log level from the config file
+ * and the command line; it never stops the server.
  */
 #include <errno.h>
 #include <signal.h>
@@ -14,14 +16,58 @@
 #include "reclaim.h"
 #include "scene_files.h"
 #include "seeding.h"
+#include "service.h"
 #include "sim_fluid.h"
 #include "server.h"
 #include "worker.h"
 
 static void on_signal(uv_signal_t *h, int signum) {
   server_t *s = h->data;
-  LOG(LOG_INFO, "server", "signal %d", signum);
+  LOG(LOG_INFO, "server", "signal %d (%s): stopping", signum, strsignal(signum));
+  service_stopping();
   server_request_stop(s);
+}
+
+/* What SIGHUP needs: the command line to read the configuration again. */
+static struct {
+  uv_signal_t signal;
+  uv_check_t stop_watch; /* Tells the service manager once a stop has begun, however begun. */
+  int argc;
+  char **argv;
+  char status[640]; /* STATUS= once serving, sent again after a reload. */
+} reload;
+
+/*
+ * SIGHUP: reads the config file and the command line again, as at start, and applies the one
+ * setting that can change while running, the log level; the rest (addresses, directories,
+ * limits, token) needs a restart. A file that no longer parses keeps the current level. stderr
+ * needs no reopening: it is a stream (the journal's, or whatever the caller redirected it to).
+ */
+static void on_sighup(uv_signal_t *h, int signum) {
+  (void)h, (void)signum;
+  service_reloading();
+  config_t *c = malloc(sizeof *c);
+  log_level_t before = log_threshold;
+  if (c && config_load(c, reload.argc, reload.argv) == CONFIG_OK) {
+    log_set_threshold((log_level_t)c->log_level);
+    /* Written at any threshold but quiet, so that a reload always leaves a trace. */
+    if (log_threshold != LOG_QUIET)
+      log_write(LOG_INFO, "server", "SIGHUP: configuration read again; log level %s (was %s)",
+                log_level_name(log_threshold), log_level_name(before));
+  } else {
+    LOG(LOG_ERROR, "server", "SIGHUP: cannot read the configuration again; log level stays %s",
+        log_level_name(before));
+  }
+  free(c);
+  service_ready(reload.status);
+}
+
+static void on_stop_watch(uv_check_t *h) {
+  server_t *s = h->data;
+  if (s->stopping) {
+    service_stopping();
+    uv_check_stop(h);
+  }
 }
 
 static void close_any(uv_handle_t *h, void *arg) {
@@ -30,8 +76,10 @@ static void close_any(uv_handle_t *h, void *arg) {
     uv_close(h, NULL);
 }
 
-/* Prints the address clients should use, with the port the kernel picked for port 0. */
+/* Prints the address clients should use, with the port the kernel picked for port 0, and tells
+ * the service manager that volfxd is ready. */
 static void announce(server_t *s) {
+  char where[320];
   if (s->has_tcp) {
     struct sockaddr_storage addr;
     int len = sizeof addr;
@@ -45,11 +93,14 @@ static void announce(server_t *s) {
       uv_ip4_name((struct sockaddr_in *)&addr, host, sizeof host);
       port = ntohs(((struct sockaddr_in *)&addr)->sin_port);
     }
-    printf("volfxd listening on %s:%d\n", host, port);
+    snprintf(where, sizeof where, "%s:%d", host, port);
   } else {
-    printf("volfxd listening on unix:%s\n", s->cfg.unix_path);
+    snprintf(where, sizeof where, "unix:%s", s->cfg.unix_path);
   }
+  printf("volfxd listening on %s\n", where);
   fflush(stdout);
+  snprintf(reload.status, sizeof reload.status, "serving on %s (%s)", where, s->device);
+  service_ready(reload.status);
 }
 
 /*
@@ -86,11 +137,21 @@ static int precompile(renderer_t *r, uint64_t t0) {
 int main(int argc, char **argv) {
   static server_t srv;
   server_t *s = &srv;
+  int journal = log_init();
   int rc = config_load(&s->cfg, argc, argv);
-  if (rc != CONFIG_OK)
+  if (rc != CONFIG_OK) {
+    /* config_load said why on stderr without a priority; this line is what `journalctl -p err`
+     * shows. */
+    if (rc == CONFIG_ERROR && journal)
+      LOG(LOG_ERROR, "config", "invalid configuration: not starting");
     return rc == CONFIG_EXIT_OK ? 0 : 2;
-  log_threshold = (log_level_t)s->cfg.log_level;
+  }
+  log_set_threshold((log_level_t)s->cfg.log_level);
+  reload.argc = argc;
+  reload.argv = argv;
   signal(SIGPIPE, SIG_IGN);
+  /* A SIGHUP while the kernels compile must not end the start; the handler comes later. */
+  signal(SIGHUP, SIG_IGN);
 
   if (s->cfg.data_dir[0]) {
     if (mkdir(s->cfg.data_dir, 0700) != 0 && errno != EEXIST) {
@@ -108,6 +169,7 @@ int main(int argc, char **argv) {
   scene_set_volume_limit(s->cfg.limits.cloud_side);
   scene_set_cloud_side(s->cfg.limits.cloud_side);
 
+  service_status("starting: OpenCL device and kernels");
   uint64_t t0 = now_ns();
   renderer_opts_t ropts = {.device = s->cfg.device[0] ? s->cfg.device : NULL,
                            .kernels_dir = s->cfg.kernels_dir[0] ? s->cfg.kernels_dir : NULL};
@@ -142,12 +204,23 @@ int main(int argc, char **argv) {
   s->sigint.data = s->sigterm.data = s;
   uv_signal_start(&s->sigint, on_signal, SIGINT);
   uv_signal_start(&s->sigterm, on_signal, SIGTERM);
+  /* SIGHUP and the stop watch do not keep the loop alive; they are closed with whatever is left
+   * once it ends. */
+  uv_signal_init(s->loop, &reload.signal);
+  uv_signal_start(&reload.signal, on_sighup, SIGHUP);
+  uv_unref((uv_handle_t *)&reload.signal);
+  uv_check_init(s->loop, &reload.stop_watch);
+  reload.stop_watch.data = s;
+  uv_check_start(&reload.stop_watch, on_stop_watch);
+  uv_unref((uv_handle_t *)&reload.stop_watch);
 
   scene_error_t serr = {0};
   if (!server_add_scene(s, "main", s->cfg.scene[0] ? s->cfg.scene : NULL, &serr)) {
     LOG(LOG_ERROR, "scene", "cannot load the main scene: %s%s%s", serr.message,
         serr.path[0] ? " at " : "", serr.path);
     server_request_stop(s);
+    uv_run(s->loop, UV_RUN_DEFAULT);
+    uv_walk(s->loop, close_any, NULL);
     uv_run(s->loop, UV_RUN_DEFAULT);
     uv_loop_close(s->loop);
     reclaim_stop();
@@ -162,9 +235,12 @@ int main(int argc, char **argv) {
     announce(s);
   }
   uv_run(s->loop, UV_RUN_DEFAULT);
-  /* Whatever is left (an unreferenced timer) is closed so the loop can be freed. */
+  service_stopping();
+  /* Whatever is left (an unreferenced timer, SIGHUP's handler) is closed so the loop can be
+   * freed. A SIGHUP from here on is ignored rather than fatal. */
   uv_walk(s->loop, close_any, NULL);
   uv_run(s->loop, UV_RUN_DEFAULT);
+  signal(SIGHUP, SIG_IGN);
   uv_loop_close(s->loop);
   /* Every call is answered now, so nothing pins the caches: a seeding or a failed read that
    * finished after the scenes were removed is dropped here. */
