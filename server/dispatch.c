@@ -350,13 +350,15 @@ static void dispatch_one(conn_t *c, reply_t *r, int i, const cJSON *msg) {
 void dispatch_resume(conn_t *c) {
   if (!c->batch)
     return;
-  while (c->batch_next && !c->held) {
+  /* A batch obeys the limits of a line each: its parts wait while the connection is full
+   * (its output, its share of the render queue, the server's output budget). */
+  while (c->batch_next && !c->held && !conn_full(c)) {
     const cJSON *it = c->batch_next;
     c->batch_next = it->next;
     dispatch_one(c, c->batch_reply, c->batch_part++, it);
   }
   if (c->batch_next)
-    return; /* Held part-way: the rest waits for conn_release. */
+    return; /* Held or full part-way: the rest waits for conn_release or pump. */
   cJSON_Delete(c->batch);
   c->batch = NULL;
   if (!c->closing)
@@ -376,6 +378,21 @@ void dispatch_line(conn_t *c, char *line, size_t len) {
     snprintf(text, sizeof text, "parse error: %s", why);
     c->srv->stats.requests++;
     part_error(c, r, 0, NULL, PROTO_E_PARSE, text, NULL);
+    conn_flush_replies(c);
+    return;
+  }
+  if (cJSON_IsArray(msg) && !c->authed) {
+    /* Before authentication a line gets one small answer: a batch is refused whole. */
+    cJSON_Delete(msg);
+    reply_t *r = reply_append(c, 1, 0);
+    if (!r) {
+      conn_close(c);
+      return;
+    }
+    c->srv->stats.requests++;
+    part_error(c, r, 0, NULL, PROTO_E_UNAUTHORIZED,
+               "unauthorized: this server needs 'auth' with its token first; batches come after",
+               NULL);
     conn_flush_replies(c);
     return;
   }

@@ -28,6 +28,7 @@ struct sub {
   uv_timer_t timer;
   int refs;            /* The timer handle and the jobs in flight. */
   int in_flight;       /* Jobs submitted and not yet done, at most SUB_IN_FLIGHT. */
+  size_t frame_bound;  /* The most bytes one of its frames takes (counted while in flight). */
   char *wait_line;     /* A finished frame waiting for the socket. */
   uint64_t wait_since; /* now_ns() when it began to wait. */
   size_t wait_len;
@@ -57,6 +58,7 @@ static void on_timer_closed(uv_handle_t *h) {
 static void drop_waiting(sub_t *sub) {
   if (!sub->wait_line)
     return;
+  server_output(sub->srv, -(long long)(sub->wait_len + sub->wait_att_len));
   free(sub->wait_line);
   free(sub->wait_att);
   sub->wait_line = NULL;
@@ -103,6 +105,8 @@ static void send_frame(sub_t *sub) {
   sub->wait_line = NULL;
   sub->wait_att = NULL;
   sub->sent++;
+  /* The bytes move from the waiting frame to the connection's output. */
+  server_output(sub->srv, -(long long)(sub->wait_len + sub->wait_att_len));
   conn_write(c, line, sub->wait_len, att, sub->wait_att_len);
 }
 
@@ -141,6 +145,7 @@ static void on_frame_done(job_t *j) {
   server_t *s = sub->srv;
   render_job_stats(s, j);
   sub->in_flight--;
+  server_output(s, -(long long)sub->frame_bound);
   if (!sub->conn || sub->conn->closing || j->code != 0) {
     if (j->code != 0 && sub->conn)
       LOG(LOG_WARN, "frames", "subscription %llu: frame failed: %s", (unsigned long long)sub->id,
@@ -200,6 +205,7 @@ static void on_frame_done(job_t *j) {
   sub->wait_len = len;
   sub->wait_att = bytes;
   sub->wait_att_len = nbytes;
+  server_output(s, (long long)(len + nbytes));
   if (uv_stream_get_write_queue_size(sub->conn->stream) == 0)
     send_frame(sub);
   sub_unref(sub);
@@ -232,12 +238,20 @@ static void on_tick(uv_timer_t *t) {
   }
   j->done = on_frame_done;
   j->ctx = sub;
+  sub->frame_bound = render_answer_bound(j, sub->base64);
+  if (s->output_total + sub->frame_bound > s->cfg.budget.output_total_bytes) {
+    render_scene_unref(j->scene);
+    free(j);
+    sub->dropped++; /* The server's output budget is spent: this frame is skipped. */
+    return;
+  }
   if (worker_submit(s->worker, j) != 0) {
     render_scene_unref(j->scene);
     free(j);
     sub->dropped++; /* The render queue is full: this frame is skipped. */
     return;
   }
+  server_output(s, (long long)sub->frame_bound);
   sub->in_flight++;
   sub->refs++;
 }

@@ -28,6 +28,9 @@ void frames_scene_deleted(server_t *s, const char *scene);
  */
 int render_job_from_params(server_t *s, scene_entry_t *e, const cJSON *params, job_t *j, char *path,
                            size_t pathlen, char *msg, size_t msglen);
+/* A bound on the bytes the answer to render job 'j' writes (its line and frame; 'base64':
+ * inline). */
+size_t render_answer_bound(const job_t *j, int base64);
 /* Records a finished job's passes and frame in the server's stats. */
 void render_job_stats(server_t *s, const job_t *j);
 /* The work_ms object of a finished job: each pass, "queue" and "total". */

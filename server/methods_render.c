@@ -166,7 +166,10 @@ static void on_render_done(job_t *j) {
   render_call_t *rc = j->ctx;
   call_t *call = rc->call;
   server_t *s = call->srv;
-  call->conn->renders--; /* Reading resumes, if it waited for this, when the answer is written. */
+  call->conn->renders--;
+  /* A connection that waited for its share of the render queue goes on (the rest of a batch
+   * may be waiting for this; a single line's answer resumes it when written anyway). */
+  conn_resume(call->conn);
   render_job_stats(s, j);
   if (j->code != 0) {
     call_error(call, j->code, j->code == PROTO_E_INVALID_PARAMS ? "format" : NULL, "%s: %s",
@@ -203,7 +206,7 @@ static void on_render_done(job_t *j) {
 
 /* A bound on the bytes the answer to 'j' writes: its line and the frame, a PNG at worst a little
  * over the raw pixels (stored deflate blocks, filter bytes, chunks); base64 a third more. */
-static size_t render_answer_bound(const job_t *j, int base64) {
+size_t render_answer_bound(const job_t *j, int base64) {
   size_t npix = (size_t)j->params.width * j->params.height;
   size_t px = j->params.format == PROTO_FMT_RGBAF32 ? 16 : 4;
   size_t n = px * npix + (j->params.format == PROTO_FMT_PNG ? npix / 64 + j->params.height : 0);
@@ -234,6 +237,18 @@ static void render_m(call_t *call) {
   rc->job.done = on_render_done;
   rc->job.ctx = rc;
   size_t bound = render_answer_bound(&rc->job, rc->base64);
+  server_t *s = call->srv;
+  if (s->output_total > 0 && s->output_total + bound > s->cfg.budget.output_total_bytes) {
+    /* The frame would pass the server's output budget: refused rather than held. */
+    render_scene_unref(rc->job.scene);
+    cJSON_Delete(rc->t);
+    free(rc);
+    call_error(call, PROTO_E_LIMIT, NULL,
+               "limit exceeded: the server's unsent output (%zu bytes) and this frame (up to "
+               "%zu) would pass limits.output_total_bytes (%zu); retry once clients have read",
+               s->output_total, bound, s->cfg.budget.output_total_bytes);
+    return;
+  }
   if (worker_submit(call->srv->worker, &rc->job) != 0) {
     render_scene_unref(rc->job.scene);
     cJSON_Delete(rc->t);

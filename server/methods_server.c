@@ -53,13 +53,11 @@ static void auth(call_t *call) {
   const char *token = cJSON_GetStringValue(cJSON_GetObjectItem(call->params, "token"));
   const char *want = call->srv->cfg.token;
   if (want[0] && !token_equal(token, want)) {
-    call_error(call, PROTO_E_UNAUTHORIZED, "token", "unauthorized: wrong token");
+    conn_auth_failed(call); /* Answered after a delay; enough of them close the connection. */
     return;
   }
-  call->conn->authed = 1;
-  /* The idle timeout counts from here: before, the connection's traffic did not reset it. */
-  if (call->srv->cfg.idle_timeout_s > 0 && !call->conn->closing)
-    uv_timer_again(&call->conn->idle);
+  /* The idle timeout counts from here: before, the connection had budget.auth_timeout_s. */
+  conn_authenticated(call->conn);
   cJSON *r = cJSON_CreateObject();
   cJSON_AddBoolToObject(r, "authenticated", 1);
   call_result(call, r);
@@ -86,6 +84,8 @@ static void stats(call_t *call) {
   cJSON *mem = cJSON_AddObjectToObject(r, "memory");
   cJSON_AddNumberToObject(mem, "rss_bytes", (double)stats_rss_bytes());
   cJSON_AddNumberToObject(mem, "output_queued_bytes", (double)queued);
+  cJSON_AddNumberToObject(mem, "output_total_bytes", (double)s->output_total);
+  cJSON_AddNumberToObject(r, "unauthenticated", s->nunauth);
   cJSON_AddNumberToObject(mem, "kept_bytes", (double)reclaim_kept_bytes());
   call_result(call, r);
 }

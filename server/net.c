@@ -10,27 +10,49 @@
  * larger than the limit (a 4096² float frame) still goes out whole. Only a connection whose
  * output stays over the limit with nothing taken off the socket for OUT_STALL_MS is closed,
  * as not reading.
+ *
+ * Over all connections, the unsent output, the answers promised and the subscriptions' frames
+ * count towards budget.output_total_bytes (server_output): once it is spent, a connection that
+ * has output pending runs no further request until the total is back under it, so the clients
+ * that wait for nothing go on. Before authentication (on a server with a token) a connection
+ * may hold little: its answers are errors and the auth result, it runs no batch, it is closed
+ * after budget.auth_timeout_s, after budget.auth_failures wrong tokens (each answered after
+ * AUTH_DELAY_MS), and at most budget.unauthenticated of them are open at once.
  */
+#include <errno.h>
 #include <stdio.h>
 #include <stdlib.h>
 #include <string.h>
+#include <sys/socket.h>
+#include <sys/stat.h>
+#include <sys/un.h>
 #include <unistd.h>
 
+#include "dispatch.h"
 #include "frames.h"
 #include "jobs.h"
 #include "log.h"
 #include "server.h"
 
-/* How long output over the limit may sit with nothing written before the connection closes. */
+/* How long output may sit with nothing taken off the socket before the connection closes,
+ * and how often that is looked at. */
 #define OUT_STALL_MS 10000
+#define STALL_CHECK_MS 1000
+/* The most output an unauthenticated connection may have unsent (its answers are errors). */
+#define UNAUTH_OUTPUT_BYTES 65536
+/* How long the answer to a wrong token is held back. */
+#define AUTH_DELAY_MS 100
 
 typedef struct write_req {
   uv_write_t req;
   conn_t *conn;
   char *line;
-  unsigned char *att;
   size_t total;
+  int natt;
+  unsigned char *att[]; /* The attachments written after the line, owned. */
 } write_req_t;
+
+static void conn_output_changed(conn_t *c, int progress);
 
 static void free_reply(reply_t *r) {
   for (int i = 0; i < r->nparts; i++) {
@@ -49,9 +71,24 @@ void conn_unref(conn_t *c) {
   while (c->head) {
     reply_t *r = c->head;
     c->head = r->next;
+    server_output(c->srv, -(long long)r->promised);
     free_reply(r);
   }
   free(c);
+}
+
+void server_output(server_t *s, long long delta) {
+  size_t budget = s->cfg.budget.output_total_bytes;
+  int was_over = s->output_total > budget;
+  s->output_total += (size_t)delta;
+  if (!was_over || s->output_total > budget)
+    return;
+  /* Back under the budget: connections paused by it may go on. */
+  for (conn_t *c = s->conns, *next; c; c = next) {
+    next = c->next;
+    if (c->out_paused && !c->closing)
+      conn_output_changed(c, 0);
+  }
 }
 
 static void on_handle_closed(uv_handle_t *h) {
@@ -63,6 +100,14 @@ void conn_close(conn_t *c) {
     return;
   c->closing = 1;
   server_t *s = c->srv;
+  if (c->delayed) { /* A held-back wrong-token answer is given now, or the call would leak. */
+    call_t *call = c->delayed;
+    c->delayed = NULL;
+    call_error(call, PROTO_E_UNAUTHORIZED, "token", "unauthorized: wrong token");
+  }
+  if (c->unauth_counted && !c->authed)
+    s->nunauth--;
+  c->unauth_counted = 0;
   frames_conn_closed(c);
   jobs_conn_closed(c);
   if (c->prev)
@@ -75,36 +120,62 @@ void conn_close(conn_t *c) {
   uv_close((uv_handle_t *)c->stream, on_handle_closed);
   uv_close((uv_handle_t *)&c->idle, on_handle_closed);
   uv_close((uv_handle_t *)&c->stall, on_handle_closed);
+  uv_close((uv_handle_t *)&c->delay, on_handle_closed);
   LOG(LOG_DEBUG, "net", "connection %llu closed", (unsigned long long)c->id);
 }
 
-/* Whether the output written and promised passes the limit, or the connection has its share
- * of the render queue: no further request is read. */
-static int conn_full(const conn_t *c) {
-  return c->out_bytes + c->promised > c->srv->cfg.limits.output_bytes ||
-         c->renders >= CONN_RENDERS_MAX;
+void conn_finish(conn_t *c) {
+  if (c->closing)
+    return;
+  uv_read_stop(c->stream);
+  c->draining = 1;
+  if (!c->head && c->out_bytes == 0)
+    conn_close(c);
+}
+
+int conn_full(const conn_t *c) {
+  const server_t *s = c->srv;
+  size_t own = c->out_bytes + c->promised;
+  size_t limit = c->authed ? s->cfg.limits.output_bytes : UNAUTH_OUTPUT_BYTES;
+  return own > limit || c->renders >= CONN_RENDERS_MAX ||
+         (own > 0 && s->output_total > s->cfg.budget.output_total_bytes);
 }
 
 static void pump(conn_t *c);
 static void on_read(uv_stream_t *stream, ssize_t nread, const uv_buf_t *buf);
 static void on_alloc(uv_handle_t *h, size_t suggested, uv_buf_t *buf);
 
+/* Looks at the socket's write queue every STALL_CHECK_MS while output is unsent: any byte
+ * taken off it since the last look is progress (a slow reader is not stalled); none for
+ * OUT_STALL_MS closes the connection. */
 static void on_stall(uv_timer_t *t) {
   conn_t *c = t->data;
+  size_t queued = uv_stream_get_write_queue_size(c->stream);
+  uint64_t now = now_ns();
+  if (queued < c->stall_mark) {
+    c->stall_mark = queued;
+    c->stall_since_ns = now;
+    return;
+  }
+  if (now - c->stall_since_ns < (uint64_t)OUT_STALL_MS * 1000000u)
+    return;
   LOG(LOG_WARN, "net", "connection %llu is not reading: %zu bytes unsent for %d s, closing",
       (unsigned long long)c->id, c->out_bytes, OUT_STALL_MS / 1000);
   conn_close(c);
 }
 
-/* After output left or was promised: the stall timer runs while the unsent output is over the
- * limit (restarted by every write that completes), and reading resumes once the output written
- * and promised is back under it. */
+/* After output left or was promised: the stall check runs while output is unsent (a write
+ * that completes is progress), and reading resumes once the connection is no longer full. */
 static void conn_output_changed(conn_t *c, int progress) {
   if (c->closing)
     return;
-  if (c->out_bytes > c->srv->cfg.limits.output_bytes) {
-    if (progress || !uv_is_active((uv_handle_t *)&c->stall))
-      uv_timer_start(&c->stall, on_stall, OUT_STALL_MS, 0);
+  if (c->out_bytes > 0) {
+    if (progress || !uv_is_active((uv_handle_t *)&c->stall)) {
+      c->stall_mark = uv_stream_get_write_queue_size(c->stream);
+      c->stall_since_ns = now_ns();
+    }
+    if (!uv_is_active((uv_handle_t *)&c->stall))
+      uv_timer_start(&c->stall, on_stall, STALL_CHECK_MS, STALL_CHECK_MS);
   } else {
     uv_timer_stop(&c->stall);
   }
@@ -118,17 +189,24 @@ static void conn_output_changed(conn_t *c, int progress) {
   }
 }
 
+void conn_resume(conn_t *c) {
+  conn_output_changed(c, 0);
+}
+
 void conn_promise(call_t *call, size_t bytes) {
   call->reply->promised += bytes;
   call->conn->promised += bytes;
+  server_output(call->srv, (long long)bytes);
 }
 
 static void on_write(uv_write_t *req, int status) {
   write_req_t *w = (write_req_t *)req;
   conn_t *c = w->conn;
-  c->out_bytes -= w->total;
+  size_t total = w->total;
+  c->out_bytes -= total;
   free(w->line);
-  free(w->att);
+  for (int i = 0; i < w->natt; i++)
+    free(w->att[i]);
   free(w);
   if (!c->closing) {
     if (status < 0 && status != UV_ECANCELED) {
@@ -144,41 +222,61 @@ static void on_write(uv_write_t *req, int status) {
       conn_output_changed(c, 1);
     }
   }
+  server_output(c->srv, -(long long)total);
   conn_unref(c);
 }
 
-void conn_write(conn_t *c, char *line, size_t len, unsigned char *att, size_t att_len) {
-  if (c->closing) {
+/* Writes 'line' and the 'n' attachments 'atts' of 'lens' bytes after it in one uv_write,
+ * without copying them; takes every buffer (free()). */
+static void write_buffers(conn_t *c, char *line, size_t len, unsigned char **atts,
+                          const size_t *lens, int n) {
+  write_req_t *w = c->closing ? NULL : malloc(sizeof *w + (size_t)n * sizeof *atts);
+  uv_buf_t stack[9], *bufs = n < 9 ? stack : malloc((size_t)(n + 1) * sizeof *bufs);
+  if (!w || !bufs) {
     free(line);
-    free(att);
-    return;
-  }
-  write_req_t *w = malloc(sizeof *w);
-  if (!w) {
-    free(line);
-    free(att);
-    conn_close(c);
+    for (int i = 0; i < n; i++)
+      free(atts[i]);
+    free(w);
+    if (bufs != stack)
+      free(bufs);
+    if (!c->closing)
+      conn_close(c);
     return;
   }
   w->conn = c;
   w->line = line;
-  w->att = att;
-  w->total = len + att_len;
-  uv_buf_t bufs[2] = {uv_buf_init(line, (unsigned)len),
-                      uv_buf_init((char *)att, (unsigned)att_len)};
+  w->total = len;
+  w->natt = 0;
+  bufs[0] = uv_buf_init(line, (unsigned)len);
+  for (int i = 0; i < n; i++) {
+    if (!atts[i])
+      continue;
+    w->att[w->natt++] = atts[i];
+    bufs[w->natt] = uv_buf_init((char *)atts[i], (unsigned)lens[i]);
+    w->total += lens[i];
+  }
   c->out_bytes += w->total;
+  server_output(c->srv, (long long)w->total);
   c->refs++;
-  int rc = uv_write(&w->req, c->stream, bufs, att_len ? 2 : 1, on_write);
+  int rc = uv_write(&w->req, c->stream, bufs, (unsigned)w->natt + 1, on_write);
+  if (bufs != stack)
+    free(bufs);
   if (rc < 0) {
     c->out_bytes -= w->total;
+    server_output(c->srv, -(long long)w->total);
     c->refs--;
     free(line);
-    free(att);
+    for (int i = 0; i < w->natt; i++)
+      free(w->att[i]);
     free(w);
     conn_close(c);
     return;
   }
   conn_output_changed(c, 0);
+}
+
+void conn_write(conn_t *c, char *line, size_t len, unsigned char *att, size_t att_len) {
+  write_buffers(c, line, len, &att, &att_len, att ? 1 : 0);
 }
 
 /* The response of part 'p' printed, with its newline, into '*len' bytes: its own line when it
@@ -237,42 +335,52 @@ static char *reply_line(reply_t *r, size_t *len, int *empty) {
 }
 
 /* Serialises a finished reply: one response line, or one array line for a batch, followed by
- * the attachments in response order. */
+ * the attachments in response order, each written from its own buffer. */
 static void write_reply(conn_t *c, reply_t *r) {
   size_t len = 0;
   int empty;
   char *line = reply_line(r, &len, &empty);
+  c->promised -= r->promised;
+  server_output(c->srv, -(long long)r->promised);
+  r->promised = 0;
   if (empty) {
     free_reply(r);
     return;
   }
-  size_t att_len = 0;
-  for (int i = 0; i < r->nparts; i++)
-    att_len += r->parts[i].att_len;
-  unsigned char *att = NULL;
-  if (att_len) {
-    if (r->nparts == 1) {
-      att = r->parts[0].att;
-      r->parts[0].att = NULL;
-    } else if ((att = malloc(att_len)) != NULL) {
-      size_t off = 0;
-      for (int i = 0; i < r->nparts; i++) {
-        if (!r->parts[i].att_len)
-          continue;
-        memcpy(att + off, r->parts[i].att, r->parts[i].att_len);
-        off += r->parts[i].att_len;
-      }
-    }
-  }
-  c->promised -= r->promised;
-  free_reply(r);
-  if (!line || (att_len && !att)) {
-    free(line);
-    free(att);
+  if (!line) {
+    free_reply(r);
     conn_close(c);
     return;
   }
-  conn_write(c, line, len, att, att_len);
+  unsigned char *stack_att[8], **atts = stack_att;
+  size_t stack_len[8], *lens = stack_len;
+  if (r->nparts > 8) {
+    atts = malloc((size_t)r->nparts * sizeof *atts);
+    lens = malloc((size_t)r->nparts * sizeof *lens);
+  }
+  if (!atts || !lens) {
+    if (atts != stack_att)
+      free(atts);
+    if (lens != stack_len)
+      free(lens);
+    free(line);
+    free_reply(r);
+    conn_close(c);
+    return;
+  }
+  int n = 0;
+  for (int i = 0; i < r->nparts; i++)
+    if (r->parts[i].att_len) {
+      atts[n] = r->parts[i].att;
+      lens[n++] = r->parts[i].att_len;
+      r->parts[i].att = NULL;
+    }
+  free_reply(r);
+  write_buffers(c, line, len, atts, lens, n);
+  if (atts != stack_att)
+    free(atts);
+  if (lens != stack_len)
+    free(lens);
 }
 
 void conn_flush_replies(conn_t *c) {
@@ -296,10 +404,70 @@ static void on_alloc(uv_handle_t *h, size_t suggested, uv_buf_t *buf) {
 
 static void on_idle_timeout(uv_timer_t *t) {
   conn_t *c = t->data;
+  if (!c->authed) {
+    LOG(LOG_DEBUG, "net", "connection %llu did not authenticate in time, closing",
+        (unsigned long long)c->id);
+    conn_close(c);
+    return;
+  }
   if (c->subs || c->head)
     return; /* A subscriber or a connection waiting for work is not idle. */
   LOG(LOG_DEBUG, "net", "connection %llu idle, closing", (unsigned long long)c->id);
   conn_close(c);
+}
+
+/* Starts the idle timer: the idle timeout, or before authentication budget.auth_timeout_s when
+ * that is shorter. */
+static void idle_start(conn_t *c) {
+  const config_t *cfg = &c->srv->cfg;
+  double s = cfg->idle_timeout_s;
+  if (!c->authed && (!(s > 0) || cfg->budget.auth_timeout_s < s))
+    s = cfg->budget.auth_timeout_s;
+  if (!(s > 0)) {
+    uv_timer_stop(&c->idle);
+    return;
+  }
+  uint64_t ms = (uint64_t)(s * 1000.0);
+  uv_timer_start(&c->idle, on_idle_timeout, ms ? ms : 1, ms ? ms : 1);
+}
+
+void conn_authenticated(conn_t *c) {
+  if (c->authed)
+    return;
+  c->authed = 1;
+  if (c->unauth_counted)
+    c->srv->nunauth--;
+  c->unauth_counted = 0;
+  if (!c->closing)
+    idle_start(c);
+}
+
+static void on_auth_delay(uv_timer_t *t) {
+  conn_t *c = t->data;
+  call_t *call = c->delayed;
+  c->delayed = NULL;
+  if (!call)
+    return;
+  int last = c->auth_failures >= c->srv->cfg.budget.auth_failures;
+  if (last)
+    conn_finish(c); /* The answer below is its last. */
+  call_error(call, PROTO_E_UNAUTHORIZED, "token",
+             last ? "unauthorized: wrong token; %u wrong tokens close the connection"
+                  : "unauthorized: wrong token",
+             c->srv->cfg.budget.auth_failures);
+}
+
+void conn_auth_failed(call_t *call) {
+  conn_t *c = call->conn;
+  c->auth_failures++;
+  if (c->closing || c->delayed) {
+    call_error(call, PROTO_E_UNAUTHORIZED, "token", "unauthorized: wrong token");
+    return;
+  }
+  /* The connection waits: nothing else it sent runs before the answer. */
+  call_hold(call);
+  c->delayed = call;
+  uv_timer_start(&c->delay, on_auth_delay, AUTH_DELAY_MS, 0);
 }
 
 /* Appends an error reply with a null id after any pending replies, and closes the connection
@@ -339,6 +507,12 @@ static void pump(conn_t *c) {
   /* Calls may close the connection; hold a reference while lines are dispatched. */
   c->refs++;
   while (!c->held && !(c->out_paused = conn_full(c))) {
+    if (c->batch) { /* A batch stopped part-way by the limits goes on first. */
+      dispatch_resume(c);
+      if (c->closing || c->draining)
+        break;
+      continue;
+    }
     char *line;
     size_t len;
     int rc = proto_reader_line(&c->reader, &line, &len);
@@ -433,7 +607,9 @@ static void on_connection(uv_stream_t *listener, int status) {
   c->idle.data = c;
   uv_timer_init(s->loop, &c->stall);
   c->stall.data = c;
-  c->refs = 3; /* The stream, the idle timer and the stall timer. */
+  uv_timer_init(s->loop, &c->delay);
+  c->delay.data = c;
+  c->refs = 4; /* The stream and the idle, stall and delay timers. */
   c->id = ++s->next_conn_id;
   c->authed = s->cfg.token[0] == '\0';
   proto_reader_init(&c->reader, s->cfg.limits.line_bytes);
@@ -461,11 +637,68 @@ static void on_connection(uv_stream_t *listener, int status) {
     finish_with_error(c, PROTO_E_LIMIT, msg, "connections");
     return;
   }
-  if (s->cfg.idle_timeout_s > 0) {
-    uint64_t ms = (uint64_t)(s->cfg.idle_timeout_s * 1000.0);
-    uv_timer_start(&c->idle, on_idle_timeout, ms, ms);
+  if (!c->authed) {
+    if (s->nunauth >= s->cfg.budget.unauthenticated) {
+      LOG(LOG_WARN, "net", "%u connections are waiting to authenticate, refusing a client",
+          s->nunauth);
+      char msg[160];
+      snprintf(msg, sizeof msg,
+               "limit exceeded: too many connections waiting to authenticate (limit %u)",
+               s->cfg.budget.unauthenticated);
+      finish_with_error(c, PROTO_E_LIMIT, msg, "unauthenticated");
+      return;
+    }
+    s->nunauth++;
+    c->unauth_counted = 1;
   }
+  idle_start(c);
   uv_read_start(c->stream, on_alloc, on_read);
+}
+
+/*
+ * Makes room for the Unix socket at 'path': nothing there is fine; a socket nobody listens on
+ * (left by a process that died) is removed; anything else (a regular file, a directory, a
+ * socket another server is listening on) is left alone and refused. Returns 0 or -1 (logged).
+ */
+static int clear_stale_socket(const char *path) {
+  struct stat st;
+  if (lstat(path, &st) != 0) {
+    if (errno == ENOENT)
+      return 0;
+    LOG(LOG_ERROR, "net", "cannot use %s: %s", path, strerror(errno));
+    return -1;
+  }
+  if (!S_ISSOCK(st.st_mode)) {
+    LOG(LOG_ERROR, "net", "refusing to listen on %s: it exists and is not a socket", path);
+    return -1;
+  }
+  struct sockaddr_un addr = {.sun_family = AF_UNIX};
+  if (strlen(path) >= sizeof addr.sun_path) {
+    LOG(LOG_ERROR, "net", "the Unix socket path %s is too long", path);
+    return -1;
+  }
+  strcpy(addr.sun_path, path);
+  int fd = socket(AF_UNIX, SOCK_STREAM | SOCK_CLOEXEC, 0);
+  if (fd < 0) {
+    LOG(LOG_ERROR, "net", "cannot check %s: %s", path, strerror(errno));
+    return -1;
+  }
+  int live = connect(fd, (struct sockaddr *)&addr, sizeof addr) == 0;
+  int err = errno;
+  close(fd);
+  if (live) {
+    LOG(LOG_ERROR, "net", "refusing to listen on %s: another server is listening there", path);
+    return -1;
+  }
+  if (err != ECONNREFUSED) {
+    LOG(LOG_ERROR, "net", "cannot check %s: %s", path, strerror(err));
+    return -1;
+  }
+  if (unlink(path) != 0 && errno != ENOENT) {
+    LOG(LOG_ERROR, "net", "cannot remove the stale socket %s: %s", path, strerror(errno));
+    return -1;
+  }
+  return 0;
 }
 
 int net_listen(server_t *s) {
@@ -496,10 +729,11 @@ int net_listen(server_t *s) {
     uv_pipe_init(s->loop, &s->pipe, 0);
     s->pipe.data = s;
     s->has_pipe = 1;
-    /* A stale socket file from a previous run would make bind fail. */
-    unlink(cfg->unix_path);
-    if ((rc = uv_pipe_bind(&s->pipe, cfg->unix_path)) != 0 ||
-        (rc = uv_listen((uv_stream_t *)&s->pipe, 511, on_connection)) != 0) {
+    if (clear_stale_socket(cfg->unix_path) != 0)
+      return -1;
+    if ((rc = uv_pipe_bind(&s->pipe, cfg->unix_path)) == 0)
+      s->pipe_bound = 1; /* Ours now: removed at the stop. */
+    if (rc != 0 || (rc = uv_listen((uv_stream_t *)&s->pipe, 511, on_connection)) != 0) {
       LOG(LOG_ERROR, "net", "cannot listen on %s: %s", cfg->unix_path, uv_strerror(rc));
       return -1;
     }
@@ -519,7 +753,9 @@ void net_stop(server_t *s) {
   if (s->has_pipe) {
     uv_close((uv_handle_t *)&s->pipe, on_listener_closed);
     s->has_pipe = 0;
-    unlink(s->cfg.unix_path);
+    if (s->pipe_bound)
+      unlink(s->cfg.unix_path);
+    s->pipe_bound = 0;
   }
   conn_t *c = s->conns;
   while (c) {

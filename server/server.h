@@ -56,7 +56,8 @@ struct conn {
   } h;
   uv_stream_t *stream;
   uv_timer_t idle;
-  uv_timer_t stall; /* Runs while the output is over the limit; closes when nothing is read. */
+  uv_timer_t stall; /* Runs while output is unsent; closes when nothing is read for long. */
+  uv_timer_t delay; /* Holds back the answer to a wrong token (conn_auth_failed). */
   server_t *srv;
   conn_t *prev, *next;
   uint64_t id;
@@ -71,6 +72,11 @@ struct conn {
   int closing;          /* No further reads; writes are dropped. */
   int draining;         /* Close once every reply is written (shutdown, oversize line). */
   int authed;
+  int unauth_counted;      /* Counted in server_t.nunauth (a token server, not yet authed). */
+  uint32_t auth_failures;  /* Wrong tokens so far. */
+  call_t *delayed;         /* The auth call 'delay' will answer, or NULL. */
+  size_t stall_mark;       /* The socket's write queue when output last moved. */
+  uint64_t stall_since_ns; /* When output last moved. */
   sub_t *subs;
   uint64_t requests;
   /* Holds (conn_hold) of calls whose effect later requests must see first, such as a
@@ -118,6 +124,7 @@ struct server {
   uv_tcp_t tcp;
   uv_pipe_t pipe;
   int has_tcp, has_pipe;
+  int pipe_bound; /* The Unix socket file is ours (bound by this process). */
   uv_signal_t sigint, sigterm;
   uv_idle_t stopper;     /* Runs the shutdown once the current callbacks are done. */
   uv_timer_t stop_timer; /* Closes connections that never drain during a shutdown. */
@@ -131,6 +138,9 @@ struct server {
   seq_job_t *jobs; /* Background jobs, running and recently ended, newest first (jobs.h). */
   uint64_t next_job_id;
   unsigned nsubs;
+  unsigned nunauth;    /* Connections that have not authenticated yet (token servers). */
+  size_t output_total; /* Unsent output, answers promised and subscription frames, all
+                          connections (budget.output_total_bytes). */
   stats_t stats;
   int stopping;
 };
@@ -145,6 +155,22 @@ int net_listen(server_t *s);
 void conn_write(conn_t *c, char *line, size_t len, unsigned char *att, size_t att_len);
 /* Closes a connection at once, dropping unwritten output. */
 void conn_close(conn_t *c);
+/* Stops reading and closes the connection once every reply is written. */
+void conn_finish(conn_t *c);
+/* Whether the connection may not run a further request now: its output or its renders are
+ * at their limits, or the server's output budget is spent and the connection has output
+ * pending. */
+int conn_full(const conn_t *c);
+/* Runs what the connection waits to run (lines, the rest of a batch) if it is no longer full. */
+void conn_resume(conn_t *c);
+/* Marks the connection authenticated: the idle timeout counts from now. */
+void conn_authenticated(conn_t *c);
+/* Answers the auth call 'call' with a wrong-token error after a short delay; closes the
+ * connection after budget.auth_failures of them. */
+void conn_auth_failed(call_t *call);
+/* Adds 'delta' (negative to take back) to the server's output total; a drop below the budget
+ * lets paused connections go on. */
+void server_output(server_t *s, long long delta);
 /* Writes every reply at the head of the queue that is complete. */
 void conn_flush_replies(conn_t *c);
 /* Counts 'bytes' that the work of 'call' will write towards its connection's output, so that
