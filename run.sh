@@ -8,8 +8,11 @@ set -euo pipefail
 cd "$(dirname "$0")"
 
 # slurm-wlm and munge: the render-farm test brings up a private one-node Slurm cluster.
+# libsystemd-dev: volfxd's readiness notification; systemd: systemd-analyze and systemd-sysusers,
+# which check deploy/volfxd.service and deploy/volfx.sysusers.conf (no systemd needs to run).
 packages=(build-essential cmake pkg-config libuv1-dev libcjson-dev libpng-dev zlib1g-dev
-          ocl-icd-opencl-dev opencl-headers pocl-opencl-icd python3 slurm-wlm munge)
+          ocl-icd-opencl-dev opencl-headers pocl-opencl-icd python3 slurm-wlm munge
+          libsystemd-dev systemd)
 
 install_missing() {
   local missing=()
