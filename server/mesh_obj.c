@@ -15,8 +15,7 @@
 
 #include "render_scene.h"
 
-#define OBJ_MAX_BYTES (64u << 20) /* Largest OBJ file accepted. */
-#define OBJ_MAX_TRIS (4u << 20)   /* Most triangles in one mesh. */
+#define OBJ_MAX_TRIS (4u << 20) /* Most triangles in one mesh. */
 
 mesh_t *mesh_ref(mesh_t *m) {
   if (m)
@@ -70,7 +69,7 @@ static void fail(parser_t *ps, const char *fmt, ...) {
   va_end(ap);
 }
 
-/* Reads the whole file into a NUL-terminated buffer, refusing files over OBJ_MAX_BYTES. */
+/* Reads the whole file into a NUL-terminated buffer, refusing files over MESH_OBJ_MAX_BYTES. */
 static char *read_file(const char *path, size_t *len, char *err, size_t errlen) {
   FILE *f = fopen(path, "rb");
   if (f == NULL) {
@@ -83,9 +82,9 @@ static char *read_file(const char *path, size_t *len, char *err, size_t errlen) 
     fclose(f);
     return NULL;
   }
-  if ((unsigned long long)st.st_size > OBJ_MAX_BYTES) {
+  if ((unsigned long long)st.st_size > MESH_OBJ_MAX_BYTES) {
     snprintf(err, errlen, "%s: file is %lld bytes, over the limit of %u", path,
-             (long long)st.st_size, OBJ_MAX_BYTES);
+             (long long)st.st_size, MESH_OBJ_MAX_BYTES);
     fclose(f);
     return NULL;
   }
@@ -196,8 +195,16 @@ mesh_t *mesh_load_obj(const char *path, char *err, size_t errlen) {
   char *text = read_file(path, &len, err, errlen);
   if (text == NULL)
     return NULL;
+  mesh_t *m = mesh_parse_obj(text, len, path, err, errlen);
+  free(text);
+  return m;
+}
 
-  parser_t ps = {.path = path, .line = 0, .err = err, .errlen = errlen};
+mesh_t *mesh_parse_obj(char *text, size_t len, const char *name, char *err, size_t errlen) {
+  char dummy[1];
+  if (err == NULL || errlen == 0)
+    err = dummy, errlen = sizeof dummy;
+  parser_t ps = {.path = name, .line = 0, .err = err, .errlen = errlen};
   fvec_t verts = {0}, tris = {0};
   int rc = 0;
   char *p = text;
@@ -220,16 +227,15 @@ mesh_t *mesh_load_obj(const char *path, char *err, size_t errlen) {
       rc = parse_face(&ps, s + 1, &verts, &tris);
     p = eol ? eol + 1 : text + len;
   }
-  free(text);
   free(verts.p);
   if (rc == 0 && tris.len == 0) {
-    snprintf(err, errlen, "%s: no faces", path);
+    snprintf(err, errlen, "%s: no faces", name);
     rc = -1;
   }
   mesh_t *m = rc == 0 ? malloc(sizeof *m) : NULL;
   if (m == NULL) {
     if (rc == 0)
-      snprintf(err, errlen, "%s: out of memory", path);
+      snprintf(err, errlen, "%s: out of memory", name);
     free(tris.p);
     return NULL;
   }

@@ -174,5 +174,10 @@ void render_scene_unref(render_scene_t *s);
 /* Loads a Wavefront OBJ file (v and f records; polygons fanned into triangles; negative
  * indices allowed). Returns NULL with a message naming the file and line in 'err'. */
 mesh_t *mesh_load_obj(const char *path, char *err, size_t errlen);
+/* The largest OBJ file mesh_load_obj reads. */
+#define MESH_OBJ_MAX_BYTES (64u << 20)
+/* Parses the OBJ text 'text' ('len' bytes, NUL-terminated, overwritten while parsed) as
+ * mesh_load_obj does, naming it 'name' in messages. The caller keeps 'text'. */
+mesh_t *mesh_parse_obj(char *text, size_t len, const char *name, char *err, size_t errlen);
 
 #endif

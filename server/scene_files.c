@@ -1,25 +1,28 @@
 /*
  * The files a scene names, and their cache (scene_files.h). Lookups run on the loop thread;
  * scene_file_load runs on any thread. The lock guards only the cache's list: files are read
- * and parsed outside it, so a long read holds up no lookup of another file.
+ * and parsed outside it, so a long read holds up no lookup of another file. Every file is
+ * opened beneath the data directory (datapath.h), and its contents are read from the very
+ * descriptor whose stat keys them.
  */
 #include "scene_files.h"
 
+#include <errno.h>
+#include <fcntl.h>
 #include <math.h>
 #include <pthread.h>
 #include <stdarg.h>
 #include <stdio.h>
 #include <stdlib.h>
 #include <string.h>
+#include <unistd.h>
 
 #include "datapath.h"
 #include "proto.h"
 
-static char *g_data_dir; /* Owned copy of the directory files are resolved under, or NULL. */
-
 /* One cached file: a mesh, or a grid of given dims and format. */
 typedef struct file_entry {
-  char *path; /* Resolved (real) path. */
+  char *path; /* The file's name under the data directory. */
   dev_t dev;
   ino_t ino;
   off_t size;
@@ -56,9 +59,10 @@ static int fail(scene_error_t *err, int code, const char *path, const char *fmt,
   return -1;
 }
 
+/* The data directory is opened here, once, for every file a request names (snapshots and job
+ * output too): scene_set_data_dir is what start-up calls with it. */
 void scene_set_data_dir(const char *dir) {
-  free(g_data_dir);
-  g_data_dir = dir ? strdup(dir) : NULL;
+  datapath_init(dir);
 }
 
 void scene_files_defer(scene_file_t *want) {
@@ -189,44 +193,32 @@ void scene_pin_release(scene_pin_t *pin) {
   }
 }
 
-/* Replaces the absolute 'real' path in a loader message by the client's 'file', so errors do
- * not reveal where the data directory lives. */
-static void scrub_message(char *msg, size_t len, const char *real, const char *file) {
-  char *at = strstr(msg, real);
-  if (!at)
-    return;
-  char tail[256];
-  snprintf(tail, sizeof tail, "%s", at + strlen(real));
-  snprintf(at, len - (size_t)(at - msg), "%s%s", file, tail);
-}
-
-/* The densities of grid file 'f': u8 (byte / 255) or f32 (little-endian, finite and
- * non-negative). NULL with 'err' set on failure. */
-static density_grid_t *grid_read(const scene_file_t *f, scene_error_t *err) {
+/* The densities of grid file 'f', open at 'fd' with stat 'st': u8 (byte / 255) or f32
+ * (little-endian, finite and non-negative). NULL with 'err' set on failure. */
+static density_grid_t *grid_read(const scene_file_t *f, int fd, const struct stat *st,
+                                 scene_error_t *err) {
   const char *p = f->path;
   size_t n = (size_t)f->dims[0] * f->dims[1] * f->dims[2], want = n * (f->u8 ? 1 : 4);
-  if ((uint64_t)f->st.st_size != want) {
+  if ((uint64_t)st->st_size != want) {
     fail(err, PROTO_E_INVALID_PARAMS, p,
          "%s: \"%.64s\" holds %lld bytes, but dims %ux%ux%u of %s need %zu", p, f->file,
-         (long long)f->st.st_size, f->dims[0], f->dims[1], f->dims[2], f->u8 ? "u8" : "f32", want);
+         (long long)st->st_size, f->dims[0], f->dims[1], f->dims[2], f->u8 ? "u8" : "f32", want);
     return NULL;
   }
   density_grid_t *g = density_grid_new(f->dims);
-  unsigned char *raw = malloc(want ? want : 1);
-  if (!g || !raw) {
+  size_t got = 0;
+  unsigned char *raw = g ? (unsigned char *)datapath_fd_read(fd, want, &got) : NULL;
+  if (!g || (!raw && errno == ENOMEM)) {
     density_grid_unref(g);
     free(raw);
     fail(err, PROTO_E_INTERNAL, p, "%s: out of memory for a %zu-voxel grid", p, n);
     return NULL;
   }
-  FILE *fp = fopen(f->real, "rb");
-  size_t got = fp ? fread(raw, 1, want, fp) : 0;
-  if (fp)
-    fclose(fp);
-  if (got != want) {
+  if (!raw || got != want) {
     density_grid_unref(g);
     free(raw);
-    fail(err, PROTO_E_INVALID_PARAMS, p, "%s: cannot read \"%.64s\"", p, f->file);
+    fail(err, PROTO_E_INVALID_PARAMS, p, "%s: cannot read \"%.64s\"%s", p, f->file,
+         raw ? ": it was cut short while read" : "");
     return NULL;
   }
   for (size_t i = 0; i < n; i++) {
@@ -255,6 +247,29 @@ static density_grid_t *grid_read(const scene_file_t *f, scene_error_t *err) {
   return g;
 }
 
+/* The mesh in the OBJ file 'f', open at 'fd' with stat 'st'. NULL with 'err' set. */
+static mesh_t *mesh_read(const scene_file_t *f, int fd, const struct stat *st, scene_error_t *err) {
+  if ((uint64_t)st->st_size > MESH_OBJ_MAX_BYTES) {
+    fail(err, PROTO_E_INVALID_PARAMS, f->path, "%s: \"%.64s\" is %lld bytes, over the limit of %u",
+         f->path, f->file, (long long)st->st_size, MESH_OBJ_MAX_BYTES);
+    return NULL;
+  }
+  size_t len;
+  char *text = datapath_fd_read(fd, (size_t)st->st_size, &len);
+  if (!text) {
+    fail(err, errno == ENOMEM ? PROTO_E_INTERNAL : PROTO_E_INVALID_PARAMS, f->path,
+         "%s: cannot read \"%.64s\": %s", f->path, f->file, strerror(errno));
+    return NULL;
+  }
+  char why[256] = "";
+  mesh_t *m = mesh_parse_obj(text, len, f->file, why, sizeof why);
+  free(text);
+  if (!m)
+    fail(err, PROTO_E_INVALID_PARAMS, f->path, "%s: %s", f->path,
+         why[0] ? why : "cannot load the mesh");
+  return m;
+}
+
 int scene_file_load(const scene_file_t *f, scene_pin_t *pin, scene_error_t *err) {
   scene_error_t local;
   if (!err)
@@ -262,33 +277,49 @@ int scene_file_load(const scene_file_t *f, scene_pin_t *pin, scene_error_t *err)
   pin->mesh = NULL;
   pin->grid = NULL;
   pin->fault = NULL;
-  int ok;
-  if (f->grid) {
-    ok = (pin->grid = grid_read(f, err)) != NULL;
+  /* The file read is the one opened now, which may differ from the one the lookup saw: it is
+   * cached under the stat of what was read. */
+  scene_file_t now = *f;
+  int fd = datapath_open_regular(f->real, SIZE_MAX, &now.st);
+  int ok = 0;
+  if (fd < 0) {
+    char why[256];
+    int code = datapath_error(errno, f->file, 0, 0, why, sizeof why);
+    fail(err, code == PROTO_E_INTERNAL ? code : PROTO_E_INVALID_PARAMS, f->path, "%s: %s", f->path,
+         why);
+    now.st = f->st;
+  } else if (f->grid) {
+    ok = (pin->grid = grid_read(f, fd, &now.st, err)) != NULL;
   } else {
-    char why[256] = "";
-    ok = (pin->mesh = mesh_load_obj(f->real, why, sizeof why)) != NULL;
-    if (!ok) {
-      scrub_message(why, sizeof why, f->real, f->file);
-      fail(err, PROTO_E_INVALID_PARAMS, f->path, "%s: %s", f->path,
-           why[0] ? why : "cannot load the mesh");
-    }
+    ok = (pin->mesh = mesh_read(f, fd, &now.st, err)) != NULL;
   }
-  insert(f, pin, ok ? NULL : err);
+  if (fd >= 0)
+    close(fd);
+  insert(&now, pin, ok ? NULL : err);
   return ok ? 0 : -1;
 }
 
-/* Resolves the client's 'file' for field 'path' into 'f' (a regular file under the data
- * directory). */
+/* Finds the client's 'file' for field 'path' and fills 'f' (a regular file under the data
+ * directory). The stat comes from a descriptor opened beneath the data directory with O_PATH,
+ * which reads nothing and so cannot block on a FIFO. */
 static int resolve(const char *file, const char *path, scene_file_t *f, scene_error_t *err) {
   char why[256];
   snprintf(f->file, sizeof f->file, "%s", file);
   snprintf(f->path, sizeof f->path, "%s", path);
-  if (datapath_resolve(g_data_dir, file, 1, f->real, sizeof f->real, why, sizeof why, NULL) != 0)
+  snprintf(f->real, sizeof f->real, "%s", file);
+  if (datapath_check(file, why, sizeof why) != 0)
     return fail(err, PROTO_E_INVALID_PARAMS, path, "%s: %s", path, why);
-  if (stat(f->real, &f->st) != 0 || !S_ISREG(f->st.st_mode))
-    return fail(err, PROTO_E_INVALID_PARAMS, path, "%s: \"%.64s\" is not a regular file", path,
-                file);
+  int fd = datapath_open(file, O_PATH, 0);
+  int e = fd < 0 || fstat(fd, &f->st) != 0 ? errno : 0;
+  if (fd >= 0)
+    close(fd);
+  if (!e && !S_ISREG(f->st.st_mode))
+    e = S_ISDIR(f->st.st_mode) ? EISDIR : S_ISLNK(f->st.st_mode) ? ELOOP : ENODEV;
+  if (e) {
+    int code = datapath_error(e, file, 0, 0, why, sizeof why);
+    return fail(err, code == PROTO_E_INTERNAL ? code : PROTO_E_INVALID_PARAMS, path, "%s: %s", path,
+                why);
+  }
   return 0;
 }
 

@@ -1,7 +1,7 @@
 /*
  * The files a scene document names: OBJ meshes (objects[].file) and raw volume grids
- * (volumes[].file), resolved under the data directory and cached by resolved path, inode, size
- * and mtime (grids also by dims and format), so that changes which keep a file do not read it
+ * (volumes[].file), opened beneath the data directory and cached by name, inode, size and mtime
+ * (grids also by dims and format), so that changes which keep a file do not read it
  * again. The cache holds one reference to each file's contents; snapshots hold their own.
  *
  * A lookup that misses reads the file on the spot, unless the caller armed a deferral
@@ -28,8 +28,8 @@
  * errors as the client wrote it. */
 typedef struct scene_file {
   int grid;            /* 0 an OBJ mesh, 1 a raw volume grid. */
-  char real[PATH_MAX]; /* Resolved path. */
-  struct stat st;      /* Its stat when it was resolved. */
+  char real[PATH_MAX]; /* Its key in the cache: its name under the data directory. */
+  struct stat st;      /* Its stat when it was looked up. */
   char file[256];      /* The client's name for it. */
   char path[64];       /* The field naming it ("objects.3.file", "volumes.0.file"). */
   uint32_t dims[3];    /* For a grid: voxels along x, y, z. */

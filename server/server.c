@@ -3,10 +3,13 @@
  * loading presets, and the graceful stop (stop accepting, answer what is pending, let the
  * render worker finish, close every handle, leave the loop).
  */
+#include <ctype.h>
 #include <errno.h>
+#include <fcntl.h>
 #include <stdio.h>
 #include <stdlib.h>
 #include <string.h>
+#include <unistd.h>
 
 #include "fluid.h"
 #include "files.h"
@@ -27,21 +30,57 @@ scene_entry_t *server_find_scene(server_t *s, const char *name) {
   return NULL;
 }
 
-cJSON *server_load_preset(server_t *s, const char *name, scene_error_t *err) {
-  char path[2048];
+/* The largest preset or --scene file read. */
+#define PRESET_MAX_BYTES (16u << 20)
+
+/* Whether 'name' can name a preset: 1-63 characters of [A-Za-z0-9_.-]. */
+static int preset_name_ok(const char *name) {
   size_t n = strlen(name);
-  int is_file = strchr(name, '/') || (n > 5 && strcmp(name + n - 5, ".json") == 0);
-  if (is_file)
-    snprintf(path, sizeof path, "%s", name);
-  else
-    snprintf(path, sizeof path, "%s/%s.json", s->cfg.presets_dir, name);
-  char *text = files_read(path, 16u << 20, NULL);
+  if (n == 0 || n > 63)
+    return 0;
+  for (const char *p = name; *p; p++)
+    if (!isalnum((unsigned char)*p) && *p != '_' && *p != '-' && *p != '.')
+      return 0;
+  return 1;
+}
+
+cJSON *server_load_preset(server_t *s, const char *name, scene_error_t *err) {
+  /* Only the operator's --scene, which start-up passes as s->cfg.scene itself, may name a file
+   * by its path (one with a '/' or ending in ".json"). Any other name, a client's scene.create
+   * above all, is a preset, read only as PRESETS_DIR/NAME.json in that directory without
+   * following a link: a client learns nothing of other files, not even whether they exist. */
+  size_t n = strlen(name);
+  int is_file = name == s->cfg.scene &&
+                (strchr(name, '/') || (n > 5 && strcmp(name + n - 5, ".json") == 0));
+  char *text = NULL;
+  int e = ENOENT;
+  if (is_file) {
+    text = files_read(name, PRESET_MAX_BYTES, NULL);
+    e = errno;
+  } else if (preset_name_ok(name)) {
+    char file[80];
+    snprintf(file, sizeof file, "%s.json", name);
+    int dir = open(s->cfg.presets_dir, O_RDONLY | O_DIRECTORY | O_CLOEXEC);
+    text = dir >= 0 ? files_read_at(dir, file, PRESET_MAX_BYTES, NULL) : NULL;
+    e = errno;
+    if (dir >= 0)
+      close(dir);
+  }
+  snprintf(err->path, sizeof err->path, "preset");
   if (!text) {
-    err->code = PROTO_E_NOT_FOUND;
-    snprintf(err->path, sizeof err->path, "preset");
-    /* A preset's own file is named relative to the presets directory, not as a server path. */
-    snprintf(err->message, sizeof err->message, "no preset '%.63s' (%.120s%s: %.40s)", name,
-             is_file ? path : name, is_file ? "" : ".json", strerror(errno));
+    err->code = e == ENOENT || is_file ? PROTO_E_NOT_FOUND : PROTO_E_INVALID_PARAMS;
+    if (is_file)
+      snprintf(err->message, sizeof err->message, "no preset '%.63s' (%.120s: %.40s)", name, name,
+               strerror(e));
+    else if (e == ENOENT)
+      snprintf(err->message, sizeof err->message, "no preset '%.63s'", name);
+    else
+      snprintf(err->message, sizeof err->message, "preset '%.63s' cannot be read: %s", name,
+               e == EISDIR   ? "it is a directory"
+               : e == ENODEV ? "it is not a regular file"
+               : e == ELOOP  ? "it is a link, which is not followed"
+               : e == EFBIG  ? "it is larger than 16 MiB"
+                             : strerror(e));
     return NULL;
   }
   cJSON *doc = cJSON_Parse(text);
@@ -49,8 +88,7 @@ cJSON *server_load_preset(server_t *s, const char *name, scene_error_t *err) {
   if (!cJSON_IsObject(doc)) {
     cJSON_Delete(doc);
     err->code = PROTO_E_INVALID_PARAMS;
-    snprintf(err->path, sizeof err->path, "preset");
-    snprintf(err->message, sizeof err->message, "preset %.200s is not a JSON object", path);
+    snprintf(err->message, sizeof err->message, "preset '%.63s' is not a JSON object", name);
     return NULL;
   }
   return doc;

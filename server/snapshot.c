@@ -1,10 +1,12 @@
 /*
  * scene.save and scene.load: snapshots of a scene in the data directory. A snapshot is one
- * JSON header line, {"volfx_snapshot": 1, "scene": {...}, "sections": [...]}, followed by the
- * binary sections it lists, each {"name", "bytes", ...} and exactly 'bytes' long, in order:
- * simulation state that is not in the document (the cloud's cells and density, the fluid's
- * particles). Files are written
- * atomically (temporary file, fsync, rename, fsync of the directory) and all file I/O runs on
+ * JSON header line, {"volfx_snapshot": 1, "name", "scene": {...}, "sections": [...], "crc32"},
+ * followed by the binary sections it lists, each {"name", "bytes", ...} and exactly 'bytes'
+ * long, in order: simulation state that is not in the document (the cloud's cells and density,
+ * the fluid's particles). "crc32" is a CRC-32 of what a load takes from the file: the header's
+ * values (not their spelling) without "name", "crc32" and scene.sim.playing, then every byte
+ * after the header line. Files are written atomically (temporary file, fsync, rename, fsync of
+ * the directory), opened beneath the data directory (datapath.h), and all file I/O runs on
  * libuv's thread pool, never on the loop thread.
  */
 #include <errno.h>
@@ -15,6 +17,7 @@
 #include <string.h>
 #include <sys/stat.h>
 #include <unistd.h>
+#include <zlib.h>
 
 #include "datapath.h"
 #include "defer.h"
@@ -37,8 +40,7 @@ struct snapshot_out {
 typedef struct snap_work {
   uv_work_t req;
   call_t *call;
-  char path[PATH_MAX];
-  char file[256]; /* The client's name for it. */
+  char file[256]; /* The client's name for it, under the data directory. */
   char scene[64];
   int err; /* errno of the failed step, or 0. */
   const char *step;
@@ -213,37 +215,154 @@ static void fluid_unsection(snap_work_t *w, const cJSON *sec, const unsigned cha
   }
 }
 
-int snapshot_out_write(snapshot_out_t *o, const char *path, size_t *bytes, const char **step) {
-  char tmp[PATH_MAX + 32];
-  int fd = files_temp_beside(path, tmp, sizeof tmp, 0600);
-  if (fd < 0) {
-    *step = "create";
-    return errno;
+/* ---- The checksum ---- */
+
+/* Where a value lies in the header, for the members the checksum leaves out. */
+enum { AT_HEADER, AT_SCENE, AT_SIM, AT_OTHER };
+
+static uLong crc_bytes(uLong crc, const void *p, size_t n) {
+  const unsigned char *b = p;
+  while (n > 0) { /* zlib takes at most UINT_MAX bytes at once. */
+    uInt k = n > UINT_MAX ? UINT_MAX : (uInt)n;
+    crc = crc32(crc, b, k);
+    b += k;
+    n -= k;
   }
+  return crc;
+}
+
+static uLong crc_string(uLong crc, const char *s) {
+  unsigned char len[4];
+  size_t n = strlen(s);
+  put_le(len, n, 4);
+  return crc_bytes(crc_bytes(crc, len, 4), s, n);
+}
+
+/*
+ * Feeds the JSON value 'v' into 'crc' as its type, member names and order, numbers' bits and
+ * strings' bytes: the same for any spelling of the same value (spaces, escapes, exponents), so
+ * that writer and reader agree without printing it the same way. 'at' is where 'v' lies:
+ * "name" and "crc32" of the header and the scene's sim.playing are left out, being no part of
+ * what a load takes from the file.
+ */
+static uLong crc_json(uLong crc, const cJSON *v, int at) {
+  unsigned char tag = (unsigned char)(v->type & 0xff);
+  crc = crc_bytes(crc, &tag, 1);
+  if (cJSON_IsNumber(v)) {
+    double d = v->valuedouble == 0 ? 0 : v->valuedouble; /* -0 and 0 alike. */
+    uint64_t bits;
+    unsigned char le[8];
+    memcpy(&bits, &d, 8);
+    put_le(le, bits, 8);
+    crc = crc_bytes(crc, le, 8);
+  } else if (cJSON_IsString(v)) {
+    crc = crc_string(crc, v->valuestring);
+  } else if (cJSON_IsArray(v) || cJSON_IsObject(v)) {
+    const cJSON *c;
+    cJSON_ArrayForEach(c, v) {
+      const char *k = cJSON_IsObject(v) ? c->string : NULL;
+      if (k && ((at == AT_HEADER && (strcmp(k, "name") == 0 || strcmp(k, "crc32") == 0)) ||
+                (at == AT_SIM && strcmp(k, "playing") == 0)))
+        continue;
+      if (k)
+        crc = crc_string(crc, k);
+      int next = !k                                           ? AT_OTHER
+                 : at == AT_HEADER && strcmp(k, "scene") == 0 ? AT_SCENE
+                 : at == AT_SCENE && strcmp(k, "sim") == 0    ? AT_SIM
+                                                              : AT_OTHER;
+      crc = crc_json(crc, c, next);
+    }
+    tag = 0xff; /* The end of the container, so that nesting counts. */
+    crc = crc_bytes(crc, &tag, 1);
+  }
+  return crc;
+}
+
+/* The members a snapshot header may have. */
+static int header_member_ok(const char *k) {
+  static const char *const known[] = {"volfx_snapshot", "name", "scene", "sections", "crc32"};
+  for (size_t i = 0; i < sizeof known / sizeof *known; i++)
+    if (strcmp(k, known[i]) == 0)
+      return 1;
+  return 0;
+}
+
+/*
+ * Thread pool: checks the header 'head' of the snapshot whose bytes after the header line are
+ * 'rest' ('n' of them): only known members, and a "crc32" that matches, if there is one (older
+ * snapshots have none). Returns 0, or -1 with the reason in 'bad'.
+ */
+static int header_verify(const cJSON *head, const unsigned char *rest, size_t n, char *bad,
+                         size_t badlen) {
+  const cJSON *m;
+  cJSON_ArrayForEach(m, head) {
+    if (!header_member_ok(m->string)) {
+      snprintf(bad, badlen, "the header has an unknown member \"%.32s\"", m->string);
+      return -1;
+    }
+  }
+  const cJSON *sum = cJSON_GetObjectItemCaseSensitive(head, "crc32");
+  if (!sum)
+    return 0;
+  if (!cJSON_IsNumber(sum) || sum->valuedouble < 0 || sum->valuedouble > 4294967295.0 ||
+      sum->valuedouble != floor(sum->valuedouble)) {
+    snprintf(bad, badlen, "the header's crc32 is not a 32-bit checksum");
+    return -1;
+  }
+  uLong crc = crc_bytes(crc_json(crc32(0, NULL, 0), head, AT_HEADER), rest, n);
+  if ((double)crc != sum->valuedouble) {
+    snprintf(bad, badlen, "the file is damaged: its checksum is %lu, the header's crc32 says %.0f",
+             crc, sum->valuedouble);
+    return -1;
+  }
+  return 0;
+}
+
+int snapshot_out_write(snapshot_out_t *o, const char *path, size_t *bytes, const char **step) {
   unsigned char *sec = o->cells ? cloud_section(o->cells, o->density) : NULL;
   unsigned char *fsec = fluid_section(o->particles);
-  int err;
-  if ((o->cells && !sec) || !fsec) {
-    err = ENOMEM;
+  size_t sec_n = o->cells ? cloud_section_bytes(o->cells) : 0;
+  size_t fsec_n = fluid_section_bytes(o->particles);
+  /* The checksum is of the header as a reader parses it, so it is parsed here too. */
+  cJSON *head = proto_parse(o->text, o->len, NULL, 0);
+  char *line = NULL;
+  size_t line_len = 0;
+  if ((o->cells && !sec) || !fsec || !head || !(line = malloc(o->len + 32))) {
+    free(sec);
+    free(fsec);
+    free(line);
+    cJSON_Delete(head);
     *step = "encode";
-  } else {
-    err = files_write_all(fd, o->text, o->len);
+    return ENOMEM;
+  }
+  uLong crc = crc_json(crc32(0, NULL, 0), head, AT_HEADER);
+  cJSON_Delete(head);
+  crc = crc_bytes(crc_bytes(crc, sec, sec_n), fsec, fsec_n);
+  /* The header printed ends in "}\n": the checksum goes in as its last member. */
+  line_len =
+      (size_t)snprintf(line, o->len + 32, "%.*s,\"crc32\":%lu}\n", (int)(o->len - 2), o->text, crc);
+
+  files_atomic_t a;
+  int err = files_atomic_begin(&a, path, 0600, step);
+  if (!err) {
+    err = files_write_all(a.fd, line, line_len);
     if (!err && sec)
-      err = files_write_all(fd, sec, cloud_section_bytes(o->cells));
+      err = files_write_all(a.fd, sec, sec_n);
     if (!err)
-      err = files_write_all(fd, fsec, fluid_section_bytes(o->particles));
-    *step = "write";
+      err = files_write_all(a.fd, fsec, fsec_n);
+    if (err) {
+      *step = "write";
+      files_atomic_abort(&a);
+    } else {
+      err = files_atomic_commit(&a, step);
+    }
   }
   free(sec);
   free(fsec);
-  if (err) {
-    close(fd);
-    unlink(tmp);
-    return err;
-  }
-  *bytes =
-      o->len + (o->cells ? cloud_section_bytes(o->cells) : 0) + fluid_section_bytes(o->particles);
-  return files_finish_atomic(fd, tmp, path, step);
+  free(line);
+  if (!err)
+    *bytes = line_len + sec_n + fsec_n;
+  return err;
 }
 
 void snapshot_out_free(snapshot_out_t *o) {
@@ -297,7 +416,7 @@ snapshot_out_t *snapshot_out_new(const scene_t *s) {
 /* Thread pool: writes the snapshot next to its final name, then renames it into place. */
 static void save_work(uv_work_t *req) {
   snap_work_t *w = req->data;
-  w->err = snapshot_out_write(w->out, w->path, &w->written, &w->step);
+  w->err = snapshot_out_write(w->out, w->file, &w->written, &w->step);
 }
 
 static void snap_work_free(snap_work_t *w) {
@@ -313,8 +432,12 @@ static void save_done(uv_work_t *req, int status) {
   snap_work_t *w = req->data;
   call_t *call = w->call;
   if (status != 0 || w->err) {
-    call_error(call, PROTO_E_INTERNAL, "file", "internal error: cannot %s snapshot \"%s\": %s",
-               w->step ? w->step : "write", w->file, strerror(w->err ? w->err : EIO));
+    char why[256];
+    int code = datapath_error(w->err ? w->err : EIO, w->file, 1, 0, why, sizeof why);
+    if (w->step && strcmp(w->step, "encode") == 0)
+      call_error(call, PROTO_E_INTERNAL, NULL, "internal error: out of memory");
+    else
+      call_error(call, code, "file", "%s: file: %s", proto_err_message(code), why);
   } else {
     cJSON *r = cJSON_CreateObject();
     cJSON_AddStringToObject(r, "file", w->file);
@@ -324,20 +447,19 @@ static void save_done(uv_work_t *req, int status) {
   snap_work_free(w);
 }
 
-static snap_work_t *work_for(call_t *call, int must_exist) {
+/* The work of a scene.save or scene.load whose file name passed the loop thread's checks; NULL
+ * with the call answered. The file itself is opened on the thread pool. */
+static snap_work_t *work_for(call_t *call) {
   const char *file = cJSON_GetStringValue(cJSON_GetObjectItem(call->params, "file"));
+  char why[256];
+  int code = datapath_check(file, why, sizeof why);
+  if (code) {
+    call_error(call, code, "file", "%s: file: %s", proto_err_message(code), why);
+    return NULL;
+  }
   snap_work_t *w = calloc(1, sizeof *w);
   if (!w) {
     call_error(call, PROTO_E_INTERNAL, NULL, "internal error: out of memory");
-    return NULL;
-  }
-  char why[256];
-  int notfound = 0;
-  if (datapath_resolve(call->srv->cfg.data_dir, file, must_exist, w->path, sizeof w->path, why,
-                       sizeof why, &notfound) != 0) {
-    free(w);
-    call_error(call, notfound ? PROTO_E_NOT_FOUND : PROTO_E_INVALID_PARAMS, "file", "%s: file: %s",
-               proto_err_message(notfound ? PROTO_E_NOT_FOUND : PROTO_E_INVALID_PARAMS), why);
     return NULL;
   }
   snprintf(w->file, sizeof w->file, "%s", file);
@@ -350,7 +472,7 @@ static void scene_save(call_t *call) {
   scene_entry_t *e = call_scene(call);
   if (!e)
     return;
-  snap_work_t *w = work_for(call, 0);
+  snap_work_t *w = work_for(call);
   if (!w)
     return;
   w->out = snapshot_out_new(e->scene);
@@ -365,19 +487,24 @@ static void scene_save(call_t *call) {
 /* Thread pool: reads the whole file. */
 static void load_work(uv_work_t *req) {
   snap_work_t *w = req->data;
-  w->text = files_read(w->path, SNAPSHOT_MAX_BYTES, &w->len);
+  w->text = datapath_read(w->file, SNAPSHOT_MAX_BYTES, &w->len);
   if (!w->text) {
     w->err = errno;
     w->step = "read";
     return;
   }
-  /* The sections after the header line; a bad one is reported by load_done. */
+  /* The checksum, then the sections after the header line; a bad one is reported by
+   * load_done, as is a header that does not parse. */
   char *nl = memchr(w->text, '\n', w->len);
-  if (!nl)
+  size_t off = nl ? (size_t)(nl - w->text) + 1 : w->len;
+  cJSON *head = proto_parse(w->text, nl ? off - 1 : w->len, NULL, 0);
+  if (!head || !cJSON_IsObject(head) ||
+      header_verify(head, (const unsigned char *)w->text + off, w->len - off, w->bad,
+                    sizeof w->bad) != 0) {
+    cJSON_Delete(head);
     return;
-  cJSON *head = proto_parse(w->text, (size_t)(nl - w->text), NULL, 0);
+  }
   const cJSON *sections = cJSON_GetObjectItem(head, "sections");
-  size_t off = (size_t)(nl - w->text) + 1;
   const cJSON *sec;
   cJSON_ArrayForEach(sec, sections) {
     const cJSON *bytes = cJSON_GetObjectItem(sec, "bytes");
@@ -419,11 +546,12 @@ static void load_done(uv_work_t *req, int status) {
   conn_t *c = call->conn;
   c->refs++; /* Answering the call may drop the last reference of a closed connection. */
   scene_entry_t *e = server_find_scene(call->srv, w->scene);
-  char why[160] = "";
+  char why[256] = "";
   cJSON *head = NULL;
   if (status != 0 || w->err) {
-    call_error(call, PROTO_E_INTERNAL, "file", "internal error: cannot %s \"%s\": %s",
-               w->step ? w->step : "read", w->file, strerror(w->err ? w->err : EIO));
+    int code =
+        datapath_error(w->err ? w->err : EIO, w->file, 0, SNAPSHOT_MAX_BYTES, why, sizeof why);
+    call_error(call, code, "file", "%s: file: %s", proto_err_message(code), why);
   } else if (!e) {
     call_error(call, PROTO_E_NOT_FOUND, "scene", "not found: scene '%s' was deleted", w->scene);
   } else {
@@ -486,7 +614,7 @@ static void scene_load(call_t *call) {
   scene_entry_t *e = call_scene(call);
   if (!e)
     return;
-  snap_work_t *w = work_for(call, 1);
+  snap_work_t *w = work_for(call);
   if (!w)
     return;
   snprintf(w->scene, sizeof w->scene, "%s", e->scene->name);
