@@ -50,8 +50,8 @@ cJSON *server_load_preset(server_t *s, const char *name, scene_error_t *err) {
    * above all, is a preset, read only as PRESETS_DIR/NAME.json in that directory without
    * following a link: a client learns nothing of other files, not even whether they exist. */
   size_t n = strlen(name);
-  int is_file = name == s->cfg.scene &&
-                (strchr(name, '/') || (n > 5 && strcmp(name + n - 5, ".json") == 0));
+  int is_file =
+      name == s->cfg.scene && (strchr(name, '/') || (n > 5 && strcmp(name + n - 5, ".json") == 0));
   char *text = NULL;
   int e = ENOENT;
   if (is_file) {
