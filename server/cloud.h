@@ -7,24 +7,30 @@
 #define VOLFX_CLOUD_H
 
 #include "server.h"
+#include "stepper.h"
 
 /* Whether a step of 'e' must step its cloud: cloud.enabled. */
 int cloud_wants_step(const scene_entry_t *e);
 /* Whether a cloud job of 'e' is queued or running. */
 int cloud_busy(const scene_entry_t *e);
 /*
- * Submits a job taking 'steps' simulation steps of the cloud of 'e' (each cloud.steps_per_frame
- * automaton steps), then its density, smoothed; the result replaces the scene's cells and
- * density when done, and 'call' (NULL for none) is answered then with the scene's clock.
- * Returns 0, or -1 when the worker's queue is full (nothing submitted).
+ * Submits a job taking up to 'max' (at most STEPPER_MAX_STEPS) of the simulation steps the
+ * cloud of 'e' owes the clock (cloud_owe_steps), oldest first, each cloud.steps_per_frame
+ * automaton steps and a density blended in (smoothing); the result replaces the scene's cells
+ * and density when done, and 'w' (may be NULL) is told then. A job with 'w' is a slice of
+ * stepping already admitted (stepper.c) and is queued past the queue's limit. Returns the
+ * steps taken (0: none owed, nothing submitted), or -1 when the worker refused the job (they
+ * stay owed).
  */
-int cloud_submit_step(server_t *srv, scene_entry_t *e, unsigned steps, call_t *call);
+int64_t cloud_submit_step(server_t *srv, scene_entry_t *e, uint64_t max, sim_wait_t *w);
 /*
- * Records that the clock took 'steps' steps the cloud did not (a sim.play tick that found a
- * cloud job running): the next cloud_submit_step takes them first, so the cells reach the
- * clock's frame whatever the timing. Forgotten when the cells are replaced.
+ * Records that the clock took 'steps' steps the cloud has not: the next cloud_submit_step
+ * takes them, so the cells reach the clock's frame whatever the timing. Forgotten when the
+ * cells are replaced.
  */
-void cloud_owe_steps(scene_entry_t *e, unsigned steps);
+void cloud_owe_steps(scene_entry_t *e, uint64_t steps);
+/* The steps the cloud of 'e' owes the clock. */
+uint64_t cloud_owed(const scene_entry_t *e);
 /*
  * Submits a job computing the density of the cells of 'e' anew, unsmoothed (after a change of
  * cloud.metaball_radius), after the cloud jobs queued; 'call' is answered then with the

@@ -27,8 +27,9 @@ typedef struct cloud_job {
   server_t *srv;
   char scene[64];
   uint64_t gen;          /* The scene's cloud_gen the job belongs to. */
-  call_t *call;          /* Answered when done, or NULL. */
-  const char *field;     /* cloud.set_cells: the field set; NULL for sim.step. */
+  call_t *call;          /* cloud.set_cells or a density for scene.set: answered when done. */
+  sim_wait_t *wait;      /* Steps: told when done (a stepper), or NULL. */
+  const char *field;     /* cloud.set_cells: the field set; NULL otherwise. */
   int answers_version;   /* scene.set: answered with 'version'. */
   uint64_t version;      /* The scene's version after that scene.set. */
   cloud_cells_t *in;     /* The scene's cells at submission (a reference). */
@@ -36,8 +37,9 @@ typedef struct cloud_job {
   cloud_link_t *prev;    /* The job queued before this one, or NULL (a reference). */
   cloud_link_t *res;     /* This job's result (a reference; the scene may hold another). */
   scene_cloud_t cfg;
-  unsigned steps; /* Automaton steps. */
-  float keep;     /* Fraction of the shown density kept. */
+  unsigned steps;  /* Automaton steps: at most STEPPER_MAX_STEPS × 64 steps_per_frame. */
+  uint64_t frames; /* Simulation steps (steps / steps_per_frame), for the cost measured. */
+  float keep;      /* Fraction of the shown density kept. */
 } cloud_job_t;
 
 static const cJSON *get(const cJSON *o, const char *name) {
@@ -178,8 +180,15 @@ static void cloud_done(job_t *j) {
       snprintf(j->err, sizeof j->err, "out of memory");
     }
   }
-  if (j->code != 0 && !cj->call)
+  if (j->code == 0 && s && cj->frames > 0) /* What a step costs, for sizing slices. */
+    s->cloud_step_ns = (double)(j->t_done_ns - j->t_started_ns) / (double)cj->frames;
+  if (j->code != 0 && !cj->call && !cj->wait)
     LOG(LOG_WARN, "cloud", "a cloud step failed: %s", j->err);
+  if (cj->wait) {
+    char err[600];
+    snprintf(err, sizeof err, "%s: cloud: %s", proto_err_message(j->code), j->err);
+    cj->wait->done(cj->wait, j->code, err);
+  }
   if (cj->call) {
     if (j->code != 0) {
       call_error(cj->call, j->code, NULL, "%s: cloud: %s", proto_err_message(j->code), j->err);
@@ -187,15 +196,10 @@ static void cloud_done(job_t *j) {
       cJSON *r = cJSON_CreateObject();
       cJSON_AddNumberToObject(r, "version", (double)cj->version);
       call_result(cj->call, r);
-    } else if (cj->field) {
+    } else {
       cJSON *r = cJSON_CreateObject();
       cJSON_AddStringToObject(r, "field", cj->field);
       cJSON_AddNumberToObject(r, "cells", (double)cloud_cells_count(cj->res->cells));
-      call_result(cj->call, r);
-    } else {
-      cJSON *r = cJSON_CreateObject();
-      cJSON_AddNumberToObject(r, "time", s ? scene_time(s) : 0);
-      cJSON_AddNumberToObject(r, "frame", s ? scene_frame(s) : 0);
       call_result(cj->call, r);
     }
   }
@@ -257,38 +261,39 @@ int cloud_busy(const scene_entry_t *e) {
   return e->scene->cloud_chain != NULL;
 }
 
-void cloud_owe_steps(scene_entry_t *e, unsigned steps) {
+void cloud_owe_steps(scene_entry_t *e, uint64_t steps) {
   if (e->cloud_owed_gen != e->scene->cloud_gen)
     e->cloud_owed = 0, e->cloud_owed_gen = e->scene->cloud_gen;
   e->cloud_owed += steps;
 }
 
-int cloud_submit_step(server_t *srv, scene_entry_t *e, unsigned steps, call_t *call) {
+uint64_t cloud_owed(const scene_entry_t *e) {
+  return e->cloud_owed_gen == e->scene->cloud_gen ? e->cloud_owed : 0;
+}
+
+int64_t cloud_submit_step(server_t *srv, scene_entry_t *e, uint64_t max, sim_wait_t *w) {
   scene_t *s = e->scene;
   scene_cloud_t cfg;
-  if (scene_cloud_config(s, &cfg) != 0 || !s->cloud_cells)
+  uint64_t owed = cloud_owed(e);
+  if (scene_cloud_config(s, &cfg) != 0 || !s->cloud_cells || owed == 0)
+    return 0;
+  /* The oldest owed steps first; the job's automaton steps fit an unsigned with room to
+   * spare (STEPPER_MAX_STEPS × 64). */
+  uint64_t take = owed < max ? owed : max;
+  if (take > STEPPER_MAX_STEPS)
+    take = STEPPER_MAX_STEPS;
+  cloud_job_t *cj = job_new(srv, s, (unsigned)(take * cfg.steps_per_frame), cfg.keep, NULL);
+  if (!cj)
     return -1;
-  /* The steps owed come first. */
-  uint64_t owed = e->cloud_owed_gen == s->cloud_gen ? e->cloud_owed : 0;
-  if (steps == 0 && owed == 0)
-    return 0; /* Nothing owed: the cells are at the clock's frame. */
-  uint64_t n = ((uint64_t)steps + owed) * cfg.steps_per_frame;
-  /* A million automaton steps of the smallest grid take seconds; more is surely a mistake,
-   * and unsigned arithmetic must not wrap. */
-  if (n > 1000000)
-    n = 1000000;
-  cloud_job_t *cj = job_new(srv, s, (unsigned)n, cfg.keep, call);
-  if (!cj) {
-    cloud_owe_steps(e, steps);
-    return -1;
-  }
+  cj->wait = w;
+  cj->frames = take;
+  cj->job.continues = w != NULL;
   if (job_submit(srv, s, cj) != 0) {
     job_free(cj);
-    cloud_owe_steps(e, steps);
     return -1;
   }
-  e->cloud_owed = 0;
-  return 0;
+  e->cloud_owed = owed - take;
+  return (int64_t)take;
 }
 
 int cloud_submit_density(server_t *srv, scene_entry_t *e, call_t *call) {

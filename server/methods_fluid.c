@@ -54,15 +54,14 @@ struct fluid_host {
 typedef struct fluid_job {
   job_t job;
   fluid_host_t *host;
-  call_t *call;       /* The sim.step to answer, or NULL (sim.play). */
-  particles_t *in;    /* The particles stepped (a reference). */
-  particles_t *out;   /* The result, NULL on failure. */
-  uint64_t gen;       /* The scene's particles_epoch when submitted. */
-  double time, frame; /* The clock sim.step answers with. */
-  uint64_t first;     /* The frame the first step starts from. */
+  sim_wait_t *wait; /* Told when done (a stepper), or NULL (sim.play). */
+  particles_t *in;  /* The particles stepped (a reference). */
+  particles_t *out; /* The result, NULL on failure. */
+  uint64_t gen;     /* The scene's particles_epoch when submitted. */
+  uint64_t first;   /* The frame the first step starts from. */
   fluid_params_t params;
   uint32_t emit_max; /* The emitters stop at this many particles. */
-  unsigned steps;
+  unsigned steps;    /* At most STEPPER_MAX_STEPS. */
   double dt;
 } fluid_job_t;
 
@@ -273,17 +272,14 @@ static void step_done(job_t *j) {
     published = 1;
   if (!published)
     particles_unref(fj->out);
-  if (j->code != 0 && !fj->call)
+  if (j->code == 0 && e && fj->steps > 0) /* What a step costs, for sizing slices. */
+    e->scene->fluid_step_ns = (double)(j->t_done_ns - j->t_started_ns) / fj->steps;
+  if (j->code != 0 && !fj->wait)
     LOG(LOG_WARN, "fluid", "a fluid step failed: %s", j->err);
-  if (fj->call) {
-    if (j->code != 0) {
-      call_error(fj->call, j->code, NULL, "%s: fluid: %s", proto_err_message(j->code), j->err);
-    } else {
-      cJSON *r = cJSON_CreateObject();
-      cJSON_AddNumberToObject(r, "time", fj->time);
-      cJSON_AddNumberToObject(r, "frame", fj->frame);
-      call_result(fj->call, r);
-    }
+  if (fj->wait) {
+    char err[600];
+    snprintf(err, sizeof err, "%s: fluid: %s", proto_err_message(j->code), j->err);
+    fj->wait->done(fj->wait, j->code, err);
   }
   particles_unref(fj->in);
   free(fj);
@@ -309,7 +305,7 @@ static fluid_host_t *host_of(scene_entry_t *e) {
   return e->fluid;
 }
 
-void fluid_owe_steps(scene_entry_t *e, unsigned steps) {
+void fluid_owe_steps(scene_entry_t *e, uint64_t steps) {
   fluid_host_t *h = host_of(e);
   if (!h)
     return;
@@ -318,46 +314,46 @@ void fluid_owe_steps(scene_entry_t *e, unsigned steps) {
   h->owed += steps;
 }
 
-int fluid_submit_step(server_t *srv, scene_entry_t *e, unsigned steps, double dt, call_t *call) {
-  fluid_host_t *h = host_of(e);
-  if (!h)
-    return -1;
-  /* The steps owed come first: the particles reach the clock's frame however the steps were
-   * taken. */
-  uint64_t owed = h->owed_gen == e->scene->particles_epoch ? h->owed : 0;
-  if (owed > UINT32_MAX - (uint64_t)steps)
-    owed = UINT32_MAX - (uint64_t)steps;
-  if (steps == 0 && owed == 0)
+uint64_t fluid_owed(const scene_entry_t *e) {
+  const fluid_host_t *h = e->fluid;
+  return h && h->owed_gen == e->scene->particles_epoch ? h->owed : 0;
+}
+
+int64_t fluid_submit_step(server_t *srv, scene_entry_t *e, uint64_t max, double dt, sim_wait_t *w) {
+  fluid_host_t *h = e->fluid;
+  uint64_t owed = fluid_owed(e);
+  if (!h || owed == 0)
     return 0; /* Nothing owed: the particles are at the clock's frame. */
+  uint64_t take = owed < max ? owed : max;
+  if (take > STEPPER_MAX_STEPS)
+    take = STEPPER_MAX_STEPS;
   fluid_job_t *fj = calloc(1, sizeof *fj);
-  if (!fj) {
-    fluid_owe_steps(e, steps);
+  if (!fj)
     return -1;
-  }
-  fj->host = e->fluid;
-  fj->call = call;
+  fj->host = h;
+  fj->wait = w;
   fj->in = particles_ref(e->scene->particles);
   params_of(e->scene->doc, &fj->params);
   fj->emit_max = emit_cap(e->scene->doc, srv->cfg.limits.particles);
-  fj->steps = steps + (unsigned)owed;
+  fj->steps = (unsigned)take;
   fj->dt = dt;
   fj->gen = e->scene->particles_epoch;
-  fj->time = scene_time(e->scene);
-  fj->frame = scene_frame(e->scene);
-  fj->first = fj->frame > fj->steps ? (uint64_t)fj->frame - fj->steps : 0;
+  /* The owed steps end at the clock's frame: the oldest starts 'owed' frames before it. */
+  uint64_t frame = (uint64_t)scene_frame(e->scene);
+  fj->first = frame > owed ? frame - owed : 0;
   fj->job.scene = render_scene_ref(e->scene->snapshot);
   fj->job.run = step_run;
   fj->job.done = step_done;
+  fj->job.continues = w != NULL;
   if (worker_submit(srv->worker, &fj->job) != 0) {
     render_scene_unref(fj->job.scene);
     particles_unref(fj->in);
     free(fj);
-    fluid_owe_steps(e, steps);
     return -1;
   }
-  h->owed = 0;
+  h->owed = owed - take;
   h->busy++;
-  return 0;
+  return (int64_t)take;
 }
 
 /* Worker thread (or the stopping thread): frees the device simulation. */
@@ -448,6 +444,11 @@ static void set_particles_m(call_t *call) {
   if (n > limit) {
     call_error(call, PROTO_E_LIMIT, "positions", "%s: positions: %u particles, the limit is %u",
                proto_err_message(PROTO_E_LIMIT), n, limit);
+    goto out;
+  }
+  scene_error_t serr;
+  if (scene_particles_fit_budget(e->scene, n, "positions", &serr) != 0) {
+    call_error(call, serr.code, serr.path, "%s: %s", proto_err_message(serr.code), serr.message);
     goto out;
   }
   fluid_params_t fp;

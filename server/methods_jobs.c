@@ -39,7 +39,9 @@
 #include "frames.h"
 #include "jobs.h"
 #include "log.h"
+#include "reserve.h"
 #include "snapshot.h"
+#include "stepper.h"
 
 /* Finished jobs kept for job.list. */
 #define JOBS_KEEP_ENDED 16
@@ -67,6 +69,8 @@ struct seq_job {
   int refs; /* The list, the retry timer handle, and each callback waited on. */
   int bake; /* sim.bake: snapshots every 'every' frames and at 'last' instead of renders. */
   uint64_t every;
+  uint64_t written;   /* Bytes of the files written, held to limits.job_bytes. */
+  stepper_t *stepper; /* Stepping the scene to next_frame, or NULL. */
 };
 
 typedef struct {
@@ -75,8 +79,12 @@ typedef struct {
   char path[PATH_MAX];
   char file[300];
   unsigned char *bytes; /* A frame's bytes, or NULL for 'snap'. */
-  size_t n;
+  size_t n;             /* The frame's bytes; after the write, the file's. */
+  uint64_t size;        /* What the file will take: n, or a snapshot's estimate. */
   snapshot_out_t *snap; /* A bake's snapshot. */
+  char dir[PATH_MAX];   /* The data directory, for the reserve. */
+  uint64_t reserve;     /* limits.data_reserve_bytes */
+  char short_of[400];   /* Why the reserve refused the write; "" when it did not. */
   int err;
   const char *step;
 } seq_write_t;
@@ -135,6 +143,8 @@ static void job_end(seq_job_t *job, job_state_t state, const char *fmt, ...) {
     LOG(LOG_WARN, "jobs", "job %llu: %s", (unsigned long long)job->id, job->error);
   }
   uv_timer_stop(&job->retry);
+  if (job->stepper)
+    stepper_cancel(job->stepper); /* Its callback drops the job's reference later. */
   notify(job);
 }
 
@@ -162,6 +172,8 @@ static void retry_later(seq_job_t *job, uv_timer_cb fn) {
 
 static void write_work(uv_work_t *req) {
   seq_write_t *w = req->data;
+  if (reserve_check(w->dir, w->size, w->reserve, w->short_of, sizeof w->short_of) != 0)
+    return;
   if (w->snap)
     w->err = snapshot_out_write(w->snap, w->path, &w->n, &w->step);
   else
@@ -188,10 +200,13 @@ static void write_done(uv_work_t *req, int status) {
   free(w->bytes);
   snapshot_out_free(w->snap);
   if (job->state == JOB_RUNNING) {
-    if (status != 0 || w->err) {
+    if (w->short_of[0]) {
+      job_end(job, JOB_FAILED, "cannot write \"%s\": %s", w->file, w->short_of);
+    } else if (status != 0 || w->err) {
       job_end(job, JOB_FAILED, "cannot %s \"%s\": %s", w->step ? w->step : "write", w->file,
               strerror(w->err ? w->err : EIO));
     } else {
+      job->written += w->n;
       job->done++;
       snprintf(job->last_file, sizeof job->last_file, "%s", w->file);
       if (job->done == job->total) {
@@ -207,12 +222,21 @@ static void write_done(uv_work_t *req, int status) {
   job_unref(job);
 }
 
-/* Queues the write of 'w' (bytes or a snapshot) to the file w->file names; the job's reference
- * held by the caller passes to it. */
+/* Queues the write of 'w' (bytes or a snapshot of about w->size bytes) to the file w->file
+ * names; the job's reference held by the caller passes to it. The job fails instead when the
+ * file would take its bytes past limits.job_bytes. */
 static void queue_write(seq_job_t *job, seq_write_t *w) {
   char why[512];
-  if (datapath_resolve(job->srv->cfg.data_dir, w->file, 0, w->path, sizeof w->path, why, sizeof why,
-                       NULL) != 0) {
+  const budget_t *b = &job->srv->cfg.budget;
+  snprintf(w->dir, sizeof w->dir, "%s", job->srv->cfg.data_dir);
+  w->reserve = b->data_reserve_bytes;
+  if (job->written + w->size > b->job_bytes) {
+    job_end(job, JOB_FAILED,
+            "cannot write \"%s\": its %llu bytes would take the job's files past %llu bytes, the "
+            "limit (limits.job_bytes)",
+            w->file, (unsigned long long)w->size, (unsigned long long)b->job_bytes);
+  } else if (datapath_resolve(job->srv->cfg.data_dir, w->file, 0, w->path, sizeof w->path, why,
+                              sizeof why, NULL) != 0) {
     job_end(job, JOB_FAILED, "%s", why);
   } else {
     w->req.data = w;
@@ -229,6 +253,24 @@ static void queue_write(seq_job_t *job, seq_write_t *w) {
 
 /* ---- snapshot (sim.bake) ---- */
 
+/*
+ * About the bytes a snapshot of 's' takes, before it is written (scene.save's format,
+ * docs/protocol.md): the header line, about the document's length, and the sections, the
+ * cloud's planes and density and the fluid's positions and velocities.
+ */
+static uint64_t snapshot_bytes(const scene_t *s) {
+  uint64_t n = 4096; /* The header's members besides the document. */
+  char *doc = cJSON_PrintUnformatted(s->doc);
+  n += doc ? strlen(doc) : 0;
+  free(doc);
+  const cloud_cells_t *c = s->cloud_cells;
+  if (c)
+    n += 3 * 8 * (uint64_t)c->words * c->n[1] * c->n[2] + 4 * (uint64_t)cloud_cells_count(c);
+  if (s->particles)
+    n += 24 * (uint64_t)s->particles->count;
+  return n;
+}
+
 static void submit_snapshot(seq_job_t *job) {
   scene_entry_t *e = server_find_scene(job->srv, job->scene);
   if (!e) {
@@ -243,6 +285,7 @@ static void submit_snapshot(seq_job_t *job) {
     job_end(job, JOB_FAILED, "out of memory");
     return;
   }
+  w->size = snapshot_bytes(e->scene);
   snprintf(w->file, sizeof w->file, "%s/" PROTO_BAKE_FILE, job->dir,
            (unsigned long long)job->next_frame);
   job->refs++;
@@ -274,6 +317,7 @@ static void render_done(job_t *j) {
            (unsigned long long)job->next_frame, job->ext);
   w->bytes = j->out.bytes;
   w->n = j->out.nbytes;
+  w->size = w->n;
   free(j);
   /* The reference held for the render passes to the write. */
   queue_write(job, w);
@@ -325,9 +369,13 @@ static void barrier_done(job_t *j) {
   seq_job_t *job = j->ctx;
   int code = j->code;
   free(j);
+  scene_entry_t *e = server_find_scene(job->srv, job->scene);
   if (job->state == JOB_RUNNING) {
     if (code != 0)
       job_end(job, JOB_FAILED, "the server is shutting down");
+    else if (e && scene_frame(e->scene) != (double)job->next_frame)
+      job_end(job, JOB_FAILED, "the scene moved to frame %.0f, off frame %llu, while the job ran",
+              scene_frame(e->scene), (unsigned long long)job->next_frame);
     else if (job->bake)
       submit_snapshot(job);
     else
@@ -365,7 +413,26 @@ static void on_retry_step(uv_timer_t *t) {
   step_frame(t->data);
 }
 
-/* Moves the scene to job->next_frame, then renders it. */
+/* The stepping to job->next_frame ended: on to the barrier, or the job fails. */
+static void stepped(void *ctx, const stepper_end_t *end) {
+  seq_job_t *job = ctx;
+  job->stepper = NULL;
+  if (job->state == JOB_RUNNING) {
+    if (end->code != 0)
+      job_end(job, JOB_FAILED, "frame %llu: %s", (unsigned long long)job->next_frame, end->err);
+    else if (end->cut)
+      job_end(job, JOB_FAILED, "frame %llu: the stepping was cut short (%s)",
+              (unsigned long long)job->next_frame, end->cut);
+    else
+      submit_barrier(job);
+  }
+  job_unref(job);
+}
+
+/*
+ * Moves the scene to job->next_frame, then renders it. The steps are taken in slices
+ * (stepper.c), 64-bit all the way: a frame past 2^32 is reached, not wrapped.
+ */
 static void step_frame(seq_job_t *job) {
   server_t *s = job->srv;
   scene_entry_t *e = server_find_scene(s, job->scene);
@@ -373,34 +440,40 @@ static void step_frame(seq_job_t *job) {
     job_end(job, JOB_FAILED, "scene \"%s\" was deleted", job->scene);
     return;
   }
-  double now = scene_frame(e->scene);
-  if (now > (double)job->next_frame) {
-    job_end(job, JOB_FAILED, "the scene moved past frame %llu (now at %.0f) while the job ran",
-            (unsigned long long)job->next_frame, now);
+  /* Frames are whole numbers below 2^53, exact in a double. */
+  uint64_t now = (uint64_t)scene_frame(e->scene);
+  if (now > job->next_frame) {
+    job_end(job, JOB_FAILED, "the scene moved past frame %llu (now at %llu) while the job ran",
+            (unsigned long long)job->next_frame, (unsigned long long)now);
     return;
   }
-  unsigned steps = (unsigned)((double)job->next_frame - now);
-  if (steps == 0) {
+  if (now == job->next_frame) {
     submit_barrier(job);
     return;
   }
-  int cloud = cloud_wants_step(e), fluid = fluid_wants_step(e);
-  /* The steps, the barrier and the render must all find room, or none is queued yet. */
-  if (worker_queue_depth(s->worker) + cloud + fluid + 2 > s->cfg.render_queue) {
+  job->refs++; /* Held by the stepping until its callback, which may come at once. */
+  int rc =
+      stepper_start(s, e, job->next_frame - now, scene_dt(e->scene), stepped, job, &job->stepper);
+  if (rc < 0) {
+    job->refs--;
     retry_later(job, on_retry_step);
-    return;
   }
-  scene_advance(e->scene, steps, scene_dt(e->scene));
-  if ((cloud && cloud_submit_step(s, e, steps, NULL) != 0) ||
-      (fluid && fluid_submit_step(s, e, steps, scene_dt(e->scene), NULL) != 0)) {
-    job_end(job, JOB_FAILED, "frame %llu: the render queue filled while stepping",
-            (unsigned long long)job->next_frame);
-    return;
-  }
-  submit_barrier(job);
 }
 
 /* ---- methods ---- */
+
+/* Whether a job of 'frames' files fits limits.job_frames; answers the call when not. */
+static int frames_fit(call_t *call, uint64_t frames) {
+  uint64_t limit = call->srv->cfg.budget.job_frames;
+  if (frames <= limit)
+    return 1;
+  call_error(call, PROTO_E_LIMIT, "last",
+             "%s: last: the job would write %llu files, over the limit of %llu a job "
+             "(limits.job_frames)",
+             proto_err_message(PROTO_E_LIMIT), (unsigned long long)frames,
+             (unsigned long long)limit);
+  return 0;
+}
 
 /* Makes 'dir' and each missing directory above it, all under the data directory. Returns 0,
  * or -1 with 'why' set. */
@@ -542,6 +615,9 @@ static void render_sequence(call_t *call) {
                (unsigned long long)first);
     return;
   }
+  uint64_t frames = (last - first) / step + 1;
+  if (!frames_fit(call, frames))
+    return;
   double now = scene_frame(e->scene);
   if ((double)first < now) {
     call_error(call, PROTO_E_INVALID_PARAMS, "first",
@@ -573,7 +649,7 @@ static void render_sequence(call_t *call) {
   job->first = job->next_frame = first;
   job->last = last;
   job->step = step;
-  job->total = (last - first) / step + 1;
+  job->total = frames;
   call_result(call, job_started(job));
   step_frame(job);
 }
@@ -671,7 +747,7 @@ static void sim_bake(call_t *call) {
                e->scene->name, now, (unsigned long long)last);
     return;
   }
-  if (job_admit(call, e, dir) != 0)
+  if (!frames_fit(call, bake_total((uint64_t)now, last, every)) || job_admit(call, e, dir) != 0)
     return;
   bake_prep_t *bp = calloc(1, sizeof *bp);
   char file[300], why[512];

@@ -13,6 +13,7 @@
 #include "fluid.h"
 #include "frames.h"
 #include "log.h"
+#include "stepper.h"
 #include "worker.h"
 
 static void answer_scene_error(call_t *call, const scene_error_t *err, const char *fallback) {
@@ -106,7 +107,7 @@ static void scene_get_m(call_t *call) {
 }
 
 static void play_start(scene_entry_t *e, double rate);
-static int play_stop(scene_entry_t *e);
+static int play_stop(scene_entry_t *e, stepper_cb cb, void *ctx);
 
 static void scene_set_m(call_t *call) {
   scene_entry_t *e = call_scene(call);
@@ -159,7 +160,7 @@ static void scene_set_m(call_t *call) {
   if (playing && cJSON_IsTrue(playing) && !(e->rate > 0))
     play_start(e, 60);
   else if (playing && !cJSON_IsTrue(playing) && e->rate > 0)
-    play_stop(e);
+    play_stop(e, NULL, NULL);
   cJSON_Delete(playing);
   scene_cloud_t cloud_after;
   if (cloud_was && cells_before && e->scene->cloud_cells == cells_before &&
@@ -187,37 +188,71 @@ static cJSON *clock_json(const scene_entry_t *e) {
   return r;
 }
 
+/* The answer to a sim.step: the clock where the stepping ended, and why, when it ended early. */
+static void step_answer(void *ctx, const stepper_end_t *end) {
+  call_t *call = ctx;
+  if (end->code != 0) {
+    call_error(call, end->code, NULL, "%s: %s", proto_err_message(end->code), end->err);
+    return;
+  }
+  cJSON *r = clock_json(end->scene);
+  if (end->cut)
+    cJSON_AddStringToObject(r, "cut_short", end->cut);
+  call_result(call, r);
+}
+
+/* Whether 'steps' simulation steps of the cloud of 'e' fit limits.automaton_steps; answers
+ * the call when not. */
+static int automaton_fits(call_t *call, const scene_entry_t *e, uint64_t steps) {
+  scene_cloud_t cfg;
+  uint32_t limit = call->srv->cfg.budget.automaton_steps;
+  if (!cloud_wants_step(e) || scene_cloud_config(e->scene, &cfg) != 0 ||
+      steps * cfg.steps_per_frame <= limit)
+    return 1;
+  call_error(call, PROTO_E_LIMIT, "steps",
+             "%s: steps: %llu steps of %u automaton steps each (cloud.steps_per_frame) is over "
+             "the limit of %u automaton steps (limits.automaton_steps)",
+             proto_err_message(PROTO_E_LIMIT), (unsigned long long)steps, cfg.steps_per_frame,
+             limit);
+  return 0;
+}
+
+/*
+ * Steps the clock, the cloud and the fluid (stepper.c: slices on the render worker, so other
+ * scenes' renders run between them). The answer waits for the last slice, and so do the
+ * connection's next requests, which see the steps taken.
+ */
 static void sim_step(call_t *call) {
   scene_entry_t *e = call_scene(call);
   if (!e)
     return;
-  unsigned steps = (unsigned)cJSON_GetObjectItem(call->params, "steps")->valuedouble;
+  uint64_t steps = (uint64_t)cJSON_GetObjectItem(call->params, "steps")->valuedouble;
   const cJSON *dt = cJSON_GetObjectItem(call->params, "dt");
   double step_dt = dt ? dt->valuedouble : scene_dt(e->scene);
-  scene_advance(e->scene, steps, step_dt);
-  /* The cloud and the fluid step on the worker, in that order; the answer waits for the last,
-   * and so do the connection's next requests, which see the steps taken. */
-  int fluid = fluid_wants_step(e);
-  if (cloud_wants_step(e)) {
-    if (cloud_submit_step(call->srv, e, steps, fluid ? NULL : call) != 0) {
-      call_error(call, PROTO_E_BUSY, NULL, "%s: the render queue is full",
-                 proto_err_message(PROTO_E_BUSY));
-      return;
-    }
-    if (!fluid) {
-      call_hold(call);
-      return;
-    }
-  }
-  if (fluid) {
-    if (fluid_submit_step(call->srv, e, steps, step_dt, call) != 0)
-      call_error(call, PROTO_E_BUSY, NULL, "%s: the render queue is full",
-                 proto_err_message(PROTO_E_BUSY));
-    else
-      call_hold(call);
+  if (!automaton_fits(call, e, steps))
     return;
+  int rc = stepper_start(call->srv, e, steps, step_dt, step_answer, call, NULL);
+  if (rc < 0)
+    call_error(call, PROTO_E_BUSY, NULL, "%s: the render queue is full",
+               proto_err_message(PROTO_E_BUSY));
+  else if (rc == 0)
+    call_hold(call);
+}
+
+/* Owes 'n' clock steps to the simulations of 'e' and, for each with no job running, submits
+ * one slice of what it owes (the next tick takes more). */
+static void play_steps(scene_entry_t *e, uint64_t n) {
+  uint64_t slice = stepper_slice_steps(e);
+  if (fluid_wants_step(e)) {
+    fluid_owe_steps(e, n);
+    if (!fluid_busy(e))
+      fluid_submit_step(e->srv, e, slice, scene_dt(e->scene), NULL);
   }
-  call_result(call, clock_json(e));
+  if (cloud_wants_step(e)) {
+    cloud_owe_steps(e, n);
+    if (!cloud_busy(e))
+      cloud_submit_step(e->srv, e, slice, NULL);
+  }
 }
 
 /* The play timer: takes the steps that wall time owes since play started. */
@@ -230,22 +265,11 @@ static void on_play(uv_timer_t *t) {
     /* After a long stall, do not try to catch up more than a second's worth. */
     if (n > (uint64_t)ceil(e->rate))
       n = (uint64_t)ceil(e->rate);
-    scene_advance(e->scene, (unsigned)n, scene_dt(e->scene));
+    scene_advance(e->scene, n, scene_dt(e->scene));
     e->play_steps = due;
     /* One job at a time per scene and simulation: while one runs, these steps are owed, and
      * the next job takes them first, so the state at a frame does not depend on the timing. */
-    if (fluid_wants_step(e)) {
-      if (fluid_busy(e))
-        fluid_owe_steps(e, (unsigned)n);
-      else
-        fluid_submit_step(e->srv, e, (unsigned)n, scene_dt(e->scene), NULL);
-    }
-    if (cloud_wants_step(e)) {
-      if (cloud_busy(e))
-        cloud_owe_steps(e, (unsigned)n);
-      else
-        cloud_submit_step(e->srv, e, (unsigned)n, NULL);
-    }
+    play_steps(e, n);
   }
 }
 
@@ -269,18 +293,18 @@ static void play_start(scene_entry_t *e, double rate) {
   set_playing(e, 1);
 }
 
-/* Stops playing. The steps the fluid and the cloud still owe the clock are taken now; returns
- * whether a simulation has steps queued. */
-static int play_stop(scene_entry_t *e) {
+/*
+ * Stops playing, and any stepping of the scene begun before (each sim.step's after its slice
+ * in flight, answered with the clock it reached). The steps the fluid and the cloud still owe
+ * the clock are then taken, in slices; 'cb' (may be NULL) gets 'ctx' when they are. Returns
+ * as stepper_start.
+ */
+static int play_stop(scene_entry_t *e, stepper_cb cb, void *ctx) {
   uv_timer_stop(&e->play);
   e->rate = 0;
   set_playing(e, 0);
-  int fluid = fluid_wants_step(e), cloud = cloud_wants_step(e);
-  if (cloud)
-    cloud_submit_step(e->srv, e, 0, NULL);
-  if (fluid)
-    fluid_submit_step(e->srv, e, 0, scene_dt(e->scene), NULL);
-  return fluid || cloud;
+  stepper_stop_scene(e);
+  return stepper_start(e->srv, e, 0, scene_dt(e->scene), cb, ctx, NULL);
 }
 
 static void sim_play(call_t *call) {
@@ -299,6 +323,7 @@ typedef struct pause_job {
   job_t job;
   call_t *call;
   cJSON *result;
+  int starting; /* Inside sim_pause, which queues the job itself when the catch-up ends at once. */
 } pause_job_t;
 
 static void pause_run(renderer_t *r, job_t *j) {
@@ -312,31 +337,51 @@ static void pause_done(job_t *j) {
   free(pj);
 }
 
+/* Queues the job that answers the pause behind every job of the scene, or answers at once
+ * when the worker takes no more. Returns 0 when the answer comes later. */
+static int pause_queue(pause_job_t *pj, server_t *srv) {
+  pj->job.run = pause_run;
+  pj->job.done = pause_done;
+  pj->job.continues = 1;
+  if (srv->worker && worker_submit(srv->worker, &pj->job) == 0)
+    return 0;
+  call_result(pj->call, pj->result);
+  free(pj);
+  return -1;
+}
+
+/* The steps owed are taken (or the catch-up ended otherwise): the answer follows them. */
+static void pause_caught_up(void *ctx, const stepper_end_t *end) {
+  (void)end;
+  pause_job_t *pj = ctx;
+  if (!pj->starting)
+    pause_queue(pj, pj->call->srv);
+}
+
 /*
- * Stops playing. The steps the fluid and the cloud still owe the clock (ticks that found a job
- * running) are taken now, and the answer waits behind them, as do the connection's next
- * requests: what they read is the state at the frame the answer reports.
+ * Stops playing and cuts short any stepping of the scene (sim.step, a job's): each stops after
+ * its slice in flight. The steps the fluid and the cloud still owe the clock (ticks that found
+ * a job running) are taken now, and the answer waits behind them and behind every job of the
+ * scene in flight, as do the connection's next requests: what they read is the state at the
+ * frame the answer reports.
  */
 static void sim_pause(call_t *call) {
   scene_entry_t *e = call_scene(call);
   if (!e)
     return;
-  int stepping = play_stop(e);
-  cJSON *r = clock_json(e);
-  cJSON_AddBoolToObject(r, "playing", 0);
-  pause_job_t *pj = stepping ? calloc(1, sizeof *pj) : NULL;
-  if (pj) {
-    pj->call = call;
-    pj->result = r;
-    pj->job.run = pause_run;
-    pj->job.done = pause_done;
-    if (worker_submit(call->srv->worker, &pj->job) == 0) {
-      call_hold(call);
-      return;
-    }
-    free(pj);
+  pause_job_t *pj = calloc(1, sizeof *pj);
+  if (!pj) {
+    call_error(call, PROTO_E_INTERNAL, NULL, "internal error: out of memory");
+    return;
   }
-  call_result(call, r);
+  pj->call = call;
+  pj->starting = 1;
+  int rc = play_stop(e, pause_caught_up, pj);
+  pj->starting = 0;
+  pj->result = clock_json(e);
+  cJSON_AddBoolToObject(pj->result, "playing", 0);
+  if (rc == 0 || pause_queue(pj, call->srv) == 0)
+    call_hold(call);
 }
 
 static const sch_field_t list_params[] = {{0}};

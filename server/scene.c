@@ -261,6 +261,31 @@ static int check_cross(const cJSON *doc, scene_error_t *err) {
   return 0;
 }
 
+/* Most animation keys in one document (limits.keyframes); unlimited until set. */
+static uint32_t g_keyframes = UINT32_MAX;
+
+/*
+ * Adds the keys of the animations of wave 'w' (waves['i']) to '*total'. Past g_keyframes the
+ * document is refused at the entry that passes it: every key is kept in the document, read by
+ * each scene.get and copied by each change, and a few thousand already animate any shot.
+ */
+static int count_keys(const cJSON *w, int i, uint64_t *total, scene_error_t *err) {
+  const cJSON *anim = get(w, "animate");
+  int m = 0;
+  for (const cJSON *e = anim ? anim->child : NULL; e; e = e->next, m++) {
+    *total += (uint64_t)cJSON_GetArraySize(get(e, "keys"));
+    if (*total > g_keyframes) {
+      char p[64];
+      snprintf(p, sizeof p, "waves.%d.animate.%d.keys", i, m);
+      return set_err(err, PROTO_E_LIMIT, p,
+                     "%s: the scene's animations would hold %llu keys, over the limit of %u "
+                     "(limits.keyframes)",
+                     p, (unsigned long long)*total, g_keyframes);
+    }
+  }
+  return 0;
+}
+
 /* The members of one wave, as the schema describes them. */
 static const sch_field_t *wave_fields(void) {
   return sch_path_field(&scene_schema, "waves.0")->fields;
@@ -275,6 +300,7 @@ static const sch_field_t *wave_fields(void) {
 static int check_waves(cJSON *doc, scene_error_t *err) {
   const sch_field_t *wf = wave_fields();
   cJSON *waves = get(doc, "waves");
+  uint64_t keys = 0;
   int i = 0;
   for (cJSON *w = waves->child; w; w = w->next, i++) {
     char p[64];
@@ -293,6 +319,8 @@ static int check_waves(cJSON *doc, scene_error_t *err) {
       return set_err(err, PROTO_E_INVALID_PARAMS, p,
                      "%s: a and b are both 0, so the wave would never show", p);
     }
+    if (count_keys(w, i, &keys, err) != 0)
+      return -1;
     snprintf(p, sizeof p, "waves.%d", i);
     sch_error_t se;
     if (anim_check(w, wf, p, &se) != 0)
@@ -898,6 +926,199 @@ static int particles_fit(const cJSON *fluid, const particles_t *p, const char *p
   return 0;
 }
 
+/* ---- Simulation memory (scene_sim_bytes) ---- */
+
+static uint64_t g_sim_budget = UINT64_MAX; /* limits.scene_bytes; unlimited until set. */
+static uint64_t g_sim_total;               /* sim_bytes summed over every scene alive. */
+static uint64_t g_scene_ids;               /* The last scene_t.id given. */
+
+void scene_set_budget(uint64_t sim_bytes, uint32_t keyframes) {
+  g_sim_budget = sim_bytes;
+  g_keyframes = keyframes;
+}
+
+uint64_t scene_sim_bytes_total(void) {
+  return g_sim_total;
+}
+
+/*
+ * Bytes a cloud keeps per cell besides its bit planes: the density shown (f32), the density a
+ * step computes and the buffer it blends into by turns (f32 each), and the renderer's light
+ * grid, a (density, transmittance) pair of f32 per voxel.
+ */
+#define CLOUD_CELL_BYTES (4 + 4 + 4 + 8)
+/* Copies of the hum, act and cld planes: the scene's cells and the two a step writes by turns. */
+#define CLOUD_PLANE_COPIES 3
+/*
+ * Bytes per particle of a simulated fluid: on the host the scene's positions and velocities
+ * (24), a step's result until it replaces them (24), the simulation's state and scratch (six
+ * f32 each, 48) and its sort order, a copy and each particle's cell (12); on the device the
+ * state read and written (48) and 1/density and pressure (8). A fluid that is not simulated
+ * keeps the scene's 24 alone.
+ */
+#define FLUID_PARTICLE_BYTES (24 + 24 + 48 + 12 + 48 + 8)
+#define PARTICLE_BYTES 24
+/* Bytes per voxel of a volume: its density grid (f32), the light swept through it (f32) and
+ * the (density, transmittance) pairs the kernel reads. */
+#define VOLUME_VOXEL_BYTES (4 + 4 + 8)
+/* How a noise volume is baked (render_volume.c): voxels per noise_scale, and most per side. */
+#define NOISE_VOXELS_PER_SCALE 16
+#define NOISE_MAX_VOXELS 96
+
+/* The cloud's part: nothing when disabled. */
+static uint64_t cloud_bytes(const cJSON *doc) {
+  const cJSON *cloud = get(doc, "cloud");
+  if (!cJSON_IsTrue(get(cloud, "enabled")))
+    return 0;
+  double n[3];
+  vec3d(get(cloud, "grid"), n);
+  uint64_t words = ((uint64_t)n[0] + 63) / 64, rows = (uint64_t)n[1] * (uint64_t)n[2];
+  uint64_t cells = (uint64_t)n[0] * rows;
+  return 3 * CLOUD_PLANE_COPIES * 8 * words * rows + cells * CLOUD_CELL_BYTES;
+}
+
+/* Whether the fluid of 'doc' has an emitter that adds particles. */
+static int fluid_emits(const cJSON *doc) {
+  for (const cJSON *em = get(get(doc, "fluid"), "emitters")->child; em; em = em->next)
+    if (get(em, "rate")->valuedouble > 0)
+      return 1;
+  return 0;
+}
+
+/* The particles a simulated fluid may come to hold: max_particles once emitters fill it. */
+static uint64_t fluid_particles(const cJSON *doc, uint64_t particles) {
+  uint64_t cap = (uint64_t)get(get(doc, "fluid"), "max_particles")->valuedouble;
+  return fluid_emits(doc) && cap > particles ? cap : particles;
+}
+
+/* The fluid's part. */
+static uint64_t fluid_bytes(const cJSON *doc, uint64_t particles) {
+  if (!cJSON_IsTrue(get(get(doc, "fluid"), "enabled")))
+    return particles * PARTICLE_BYTES;
+  return fluid_particles(doc, particles) * FLUID_PARTICLE_BYTES;
+}
+
+/* One volume's part: a file's grid of its dims, or the grid noise is baked into. */
+static uint64_t volume_bytes(const cJSON *v) {
+  double d[3], lo[3], hi[3];
+  if (strcmp(get(v, "source")->valuestring, "file") == 0) {
+    vec3d(get(v, "dims"), d);
+  } else {
+    vec3d(get(get(v, "bounds"), "min"), lo);
+    vec3d(get(get(v, "bounds"), "max"), hi);
+    double scale = get(v, "noise_scale")->valuedouble;
+    for (int k = 0; k < 3; k++)
+      d[k] =
+          fmin(fmax(ceil((hi[k] - lo[k]) / scale * NOISE_VOXELS_PER_SCALE), 4), NOISE_MAX_VOXELS);
+  }
+  return (uint64_t)d[0] * (uint64_t)d[1] * (uint64_t)d[2] * VOLUME_VOXEL_BYTES;
+}
+
+uint64_t scene_sim_bytes(const cJSON *doc, uint64_t particles) {
+  uint64_t sum = cloud_bytes(doc) + fluid_bytes(doc, particles);
+  for (const cJSON *v = get(doc, "volumes")->child; v; v = v->next)
+    sum += volume_bytes(v);
+  return sum;
+}
+
+/*
+ * The field to blame for the estimate of 'doc' with 'particles' (whose source 'ppath' names)
+ * passing the budget: the first part that grew over the scene's document 'old' with 'was'
+ * particles (NULL for a new scene: then the largest part), into 'path'.
+ */
+static void blame(const cJSON *old, uint64_t was, const cJSON *doc, uint64_t particles,
+                  const char *ppath, char *path, size_t len) {
+  uint64_t best = 0;
+  const char *fluid_path = fluid_emits(doc) && fluid_particles(doc, particles) > particles
+                               ? "fluid.max_particles"
+                               : ppath;
+  struct {
+    const char *path;
+    uint64_t now, before;
+  } parts[] = {{"cloud.grid", cloud_bytes(doc), old ? cloud_bytes(old) : 0},
+               {fluid_path, fluid_bytes(doc, particles), old ? fluid_bytes(old, was) : 0}};
+  snprintf(path, len, "volumes");
+  for (size_t k = 0; k < sizeof parts / sizeof *parts; k++) {
+    uint64_t grew = parts[k].now > parts[k].before ? parts[k].now - parts[k].before : 0;
+    if (grew > best) {
+      best = grew;
+      snprintf(path, len, "%s", parts[k].path);
+    }
+  }
+  const cJSON *ov = old ? get(old, "volumes")->child : NULL;
+  int i = 0;
+  for (const cJSON *v = get(doc, "volumes")->child; v;
+       v = v->next, i++, ov = ov ? ov->next : NULL) {
+    uint64_t now = volume_bytes(v), before = ov ? volume_bytes(ov) : 0;
+    if (now > before && now - before > best) {
+      best = now - before;
+      snprintf(path, len, "volumes.%d", i);
+    }
+  }
+}
+
+/*
+ * Whether scene 's' may take validated 'doc' with 'particles' particles (their source named by
+ * 'ppath') within the memory budget: a change that does not grow the scene's estimate always
+ * may. Returns 0, or -1 with 'err' (PROTO_E_LIMIT) naming the part that grew most.
+ */
+static int sim_fits(const scene_t *s, const cJSON *doc, uint64_t particles, const char *ppath,
+                    scene_error_t *err) {
+  uint64_t est = scene_sim_bytes(doc, particles);
+  if (est <= s->sim_bytes || g_sim_total - s->sim_bytes + est <= g_sim_budget)
+    return 0;
+  char path[64];
+  blame(s->doc, s->particles ? s->particles->count : 0, doc, particles, ppath, path, sizeof path);
+  return set_err(err, PROTO_E_LIMIT, path,
+                 "%s: the scenes' simulation state would take about %llu MiB (this scene %llu "
+                 "MiB), over the limit of %llu MiB (limits.scene_bytes)",
+                 path, (unsigned long long)((g_sim_total - s->sim_bytes + est) >> 20),
+                 (unsigned long long)(est >> 20), (unsigned long long)(g_sim_budget >> 20));
+}
+
+/* Counts the scene for 'particles' particles from now on. */
+static void sim_account(scene_t *s, uint64_t particles) {
+  uint64_t est = scene_sim_bytes(s->doc, particles);
+  g_sim_total = g_sim_total - s->sim_bytes + est;
+  s->sim_bytes = est;
+}
+
+int scene_particles_fit_budget(const scene_t *s, uint64_t n, const char *path, scene_error_t *err) {
+  clear_err(err);
+  if (sim_fits(s, s->doc, n, path, err) == 0)
+    return 0;
+  snprintf(err->path, sizeof err->path, "%s", path); /* The particles, whatever the fluid says. */
+  return -1;
+}
+
+/* The particles 'doc' will give scene 's' (at most; blocks lose the points inside objects) and
+ * the field they come from, before any are made. */
+static uint64_t particles_bound(const scene_t *s, const cJSON *doc, const scene_saved_t *saved,
+                                const char **from) {
+  const cJSON *fluid = get(doc, "fluid"), *old = s->doc ? get(s->doc, "fluid") : NULL;
+  if (saved && saved->particles) {
+    *from = "file";
+    return saved->particles->count;
+  }
+  if (!old || !cJSON_Compare(get(fluid, "initial"), get(old, "initial"), 1)) {
+    uint64_t n = 0;
+    for (const cJSON *blk = get(fluid, "initial")->child; blk; blk = blk->next)
+      n += (uint64_t)get(blk, "count")->valuedouble;
+    *from = "fluid.initial";
+    return n;
+  }
+  *from = "fluid.enabled";
+  return s->particles ? s->particles->count : 0;
+}
+
+/* sim_fits for validated 'doc' with the particles it will bring. */
+static int budget_fits(const scene_t *s, const cJSON *doc, const scene_saved_t *saved,
+                       scene_error_t *err) {
+  const char *from = NULL;
+  uint64_t n = particles_bound(s, doc, saved, &from);
+  return sim_fits(s, doc, n, from, err);
+}
+
 /*
  * Makes 'doc' (owned, taken in every case) the scene's document if it is valid. A new value of
  * fluid.initial (or the first document) replaces the particles by its blocks; a cloud newly
@@ -913,7 +1134,9 @@ static int commit(scene_t *s, cJSON *doc, const scene_saved_t *saved, scene_erro
   density_grid_t *density = NULL;
   int seeded = 0;
   render_scene_t *rs = NULL;
-  if (prepare(doc, err) != 0 || files_ready(doc, err) != 0 ||
+  /* The budget first: a refused change reads no file and seeds nothing. */
+  if (prepare(doc, err) != 0 || budget_fits(s, doc, saved, err) != 0 ||
+      files_ready(doc, err) != 0 ||
       cloud_prepare(s, doc, saved ? saved->cells : NULL, saved ? saved->density : NULL, &cells,
                     &density, &seeded, err) != 0)
     goto fail;
@@ -955,6 +1178,7 @@ static int commit(scene_t *s, cJSON *doc, const scene_saved_t *saved, scene_erro
     cloud_link_unref(s->cloud_chain);
     s->cloud_chain = NULL;
   }
+  sim_account(s, s->particles ? s->particles->count : 0);
   scene_files_prune();
   seeding_prune();
   return 0;
@@ -990,6 +1214,7 @@ scene_t *scene_create(const char *name, const cJSON *preset, scene_error_t *err)
     return NULL;
   }
   snprintf(s->name, sizeof s->name, "%s", name);
+  s->id = ++g_scene_ids;
   /* The first commit takes the version from 0 to 1, what scene.list shows for a new scene. */
   if (commit(s, doc, NULL, err) != 0) {
     free(s);
@@ -1001,6 +1226,7 @@ scene_t *scene_create(const char *name, const cJSON *preset, scene_error_t *err)
 void scene_destroy(scene_t *s) {
   if (!s)
     return;
+  g_sim_total -= s->sim_bytes;
   render_scene_unref(s->snapshot);
   particles_unref(s->particles);
   cloud_cells_unref(s->cloud_cells);
@@ -1235,7 +1461,7 @@ static render_scene_t *snapshot_advanced(const render_scene_t *old, const cJSON 
  * memory run out, the old snapshot (with the old clock and waves) stays in place until the
  * next change; the document has moved on regardless.
  */
-void scene_advance(scene_t *s, unsigned steps, double dt) {
+void scene_advance(scene_t *s, uint64_t steps, double dt) {
   if (steps == 0 || !(dt > 0) || !isfinite(dt))
     return;
   const sch_field_t *ft = sch_path_field(&scene_schema, "sim.time");
@@ -1252,7 +1478,7 @@ void scene_advance(scene_t *s, unsigned steps, double dt) {
     s->clock.base_time = from_zero ? 0 : t0;
     s->clock.base_frame = from_zero ? 0 : f0;
   }
-  double f = fmin(f0 + steps, ff->max);
+  double f = fmin(f0 + (double)steps, ff->max);
   double t = fmin(s->clock.base_time + (f - s->clock.base_frame) * dt, ft->max);
   s->clock.valid = 1, s->clock.dt = dt, s->clock.time = t, s->clock.frame = f;
   cJSON_SetNumberValue(jt, t);
@@ -1279,6 +1505,7 @@ int scene_set_particles(scene_t *s, particles_t *p) {
   cJSON_SetNumberValue(get(get(s->doc, "fluid"), "count"), (p ? (double)p->count : 0));
   render_scene_unref(s->snapshot);
   s->snapshot = rs;
+  sim_account(s, p ? p->count : 0);
   return 0;
 }
 

@@ -45,7 +45,9 @@ typedef struct scene_cloud {
 
 typedef struct scene {
   char name[64];
-  cJSON *doc;               /* The validated document, defaults filled in. */
+  uint64_t id; /* Unique among every scene this process made: work started for a scene never
+                  mistakes a later scene of the same name for it. */
+  cJSON *doc;  /* The validated document, defaults filled in. */
   render_scene_t *snapshot; /* Compiled from 'doc'; replaced on every change. */
   unsigned long version;    /* Incremented on every change. */
   particles_t *particles;   /* The fluid's particles (a reference), NULL for none. */
@@ -58,6 +60,14 @@ typedef struct scene {
   uint64_t cloud_gen;        /* Unique among all scenes; changes when the cells are replaced
                                 (seeded, set by a client, loaded), not when stepped. */
   cloud_link_t *cloud_chain; /* The last cloud job in flight, or NULL. */
+  uint64_t stops; /* Counts sim.pause and the like: stepping begun before stops at its next
+                     slice (stepper.c). */
+  /* What one simulation step costs, as the last job measured it (0: not measured yet), so that
+   * long stepping is cut into slices of about the same worker time (stepper.c): */
+  double cloud_step_ns; /* worker time of the cloud's steps_per_frame automaton steps and density */
+  double fluid_step_ns; /* worker time of one fluid step */
+  double advance_ns;    /* loop time of scene_advance per step (the waves' animations) */
+  uint64_t sim_bytes;   /* The simulation memory this scene is counted for (scene_sim_bytes). */
   /* The clock's base (scene_advance): sim.time is base_time + (frame - base_frame) * dt for
    * the dt and the time and frame it last wrote ('valid' once it has). */
   struct {
@@ -81,6 +91,29 @@ void scene_set_data_dir(const char *dir);
 
 /* Sets the largest side of a volume file's grid (the cloud_side limit); 256 until set. */
 void scene_set_volume_limit(uint32_t side);
+
+/*
+ * Sets the budgets every scene is held to (limits.scene_bytes, limits.keyframes): the
+ * simulation memory of all scenes together, estimated by scene_sim_bytes, and the animation
+ * keys of one document. A change that would pass either is refused with PROTO_E_LIMIT, naming
+ * the field, and nothing changes. Unlimited until set.
+ */
+void scene_set_budget(uint64_t sim_bytes, uint32_t keyframes);
+
+/*
+ * The simulation memory the server keeps for a scene with validated document 'doc' and
+ * 'particles' particles: the cloud's cells and densities, the fluid on host and device, the
+ * volumes' grids (docs/architecture.md, "Scene memory"). An estimate, the same for a document
+ * wherever it is asked.
+ */
+uint64_t scene_sim_bytes(const cJSON *doc, uint64_t particles);
+
+/* The estimate summed over every scene alive (what scene_set_budget bounds). */
+uint64_t scene_sim_bytes_total(void);
+
+/* Whether the scene may hold 'n' particles within the memory budget. Returns 0, or -1 with
+ * 'err' (PROTO_E_LIMIT at 'path') when the total would pass it. */
+int scene_particles_fit_budget(const scene_t *s, uint64_t n, const char *path, scene_error_t *err);
 
 /*
  * Creates a scene from 'preset' (a document, possibly partial; NULL for all defaults).
@@ -124,13 +157,15 @@ int scene_replace_saved(scene_t *s, const cJSON *doc, const scene_saved_t *saved
 
 /* Advances the clock: sim.time += steps * dt, sim.frame += steps, and the wave animations
  * with it (their current values written into the document); compiles one snapshot per call,
- * however many steps it takes. */
-void scene_advance(scene_t *s, unsigned steps, double dt);
+ * however many steps it takes. A toward-target animation costs up to one move per step, so
+ * callers take long runs of steps in parts (stepper.c). */
+void scene_advance(scene_t *s, uint64_t steps, double dt);
 
 /*
- * Makes 'p' (a reference, taken on success; NULL for none) the fluid's particles: fluid.count
- * and a fresh snapshot follow at once. The caller has validated them. Returns 0, or -1 on OOM
- * with nothing changed.
+ * Makes 'p' (a reference, taken on success; NULL for none) the fluid's particles: fluid.count,
+ * the scene's sim_bytes and a fresh snapshot follow at once. The caller has validated them
+ * (scene_particles_fit_budget for a count the scene's estimate does not cover). Returns 0, or -1 on
+ * OOM with nothing changed.
  */
 int scene_set_particles(scene_t *s, particles_t *p);
 

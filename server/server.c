@@ -94,8 +94,27 @@ cJSON *server_load_preset(server_t *s, const char *name, scene_error_t *err) {
   return doc;
 }
 
+/* The scenes the server holds. */
+static uint32_t scene_count(const server_t *s) {
+  uint32_t n = 0;
+  for (const scene_entry_t *e = s->scenes; e; e = e->next)
+    n++;
+  return n;
+}
+
 scene_entry_t *server_add_scene(server_t *s, const char *name, const char *preset,
                                 scene_error_t *err) {
+  if (scene_count(s) >= s->cfg.budget.scenes) {
+    err->code = PROTO_E_LIMIT;
+    snprintf(err->path, sizeof err->path, "name");
+    snprintf(err->message, sizeof err->message,
+             "name: the server holds %u scenes, the limit (limits.scenes); delete one first",
+             s->cfg.budget.scenes);
+    return NULL;
+  }
+  /* Every scene is made here, so the scene model takes its budgets from the configuration here
+   * (read-only once the server runs). */
+  scene_set_budget(s->cfg.budget.scene_bytes, s->cfg.budget.keyframes);
   cJSON *doc = NULL;
   if (preset && preset[0] && !(doc = server_load_preset(s, preset, err)))
     return NULL;

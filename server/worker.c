@@ -191,7 +191,7 @@ worker_t *worker_start(uv_loop_t *loop, renderer_t *r, int max_queue) {
 
 int worker_submit(worker_t *w, job_t *j) {
   uv_mutex_lock(&w->mu);
-  if ((w->depth >= w->max_queue && !j->must_run) || w->stop) {
+  if ((w->depth >= w->max_queue && !j->must_run && !j->continues) || w->stop) {
     uv_mutex_unlock(&w->mu);
     return -1;
   }

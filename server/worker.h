@@ -34,14 +34,18 @@ struct job {
   /* A 'run' job that must happen even at shutdown (freeing what the worker owns): it is
    * queued past 'max_queue', and worker_stop runs it rather than cancelling it. */
   int must_run;
+  /* A slice of work already admitted (the next part of a long simulation step): queued even
+   * when 'max_queue' jobs wait, since refusing it would strand the work half done. Cancelled
+   * at shutdown like any other. */
+  int continues;
   void (*done)(job_t *j); /* Runs on the loop thread; frees the job. */
   void *ctx;
 };
 
 /* Starts the worker thread, which takes ownership of 'r'. Returns NULL on failure. */
 worker_t *worker_start(uv_loop_t *loop, renderer_t *r, int max_queue);
-/* Queues 'j'. Returns 0, or -1 when 'max_queue' jobs are already waiting (and 'j' is not
- * must_run) or the worker has stopped. */
+/* Queues 'j'. Returns 0, or -1 when 'max_queue' jobs are already waiting (and 'j' is neither
+ * must_run nor continues) or the worker has stopped. */
 int worker_submit(worker_t *w, job_t *j);
 /* Jobs waiting, not counting the one running. */
 int worker_queue_depth(worker_t *w);
