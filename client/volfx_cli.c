@@ -830,7 +830,18 @@ static int cmd_sequence(const cli_t *cli, int argc, char **argv) {
   cJSON_AddStringToObject(p, "dir", dir);
   default_format(p);
   cJSON *r = NULL;
-  if (rpc(cli, "render.sequence", p, &r, NULL) != 0) {
+  volfx_error_t e;
+  int rc = volfx_call(cli->conn, "render.sequence", p, &r, NULL, &e);
+  if (rc != 0) {
+    report(cli, rc, &e);
+    if (rc == PROTO_E_INVALID_PARAMS && strcmp(e.path, "first") == 0) {
+      /* The live scene has played past FIRST: a private server renders any range. */
+      fprintf(stderr,
+              "volfx: to render frames %llu..%llu whatever the live scene's clock says, use "
+              "`volfx batch SCENE -s %llu -e %llu -o 'DIR/frame_######.png'`\n",
+              (unsigned long long)first, (unsigned long long)last, (unsigned long long)first,
+              (unsigned long long)last);
+    }
     return EXIT_FAIL;
   }
   double id = cJSON_GetNumberValue(cJSON_GetObjectItemCaseSensitive(r, "id"));
