@@ -458,7 +458,8 @@ static const sch_field_t pause_params[] = {PARAM_SCENE, {0}};
 static const int auth_errors[] = {PROTO_E_UNAUTHORIZED, 0};
 static const int scene_errors[] = {PROTO_E_UNAUTHORIZED, PROTO_E_NOT_FOUND, 0};
 static const int step_errors[] = {PROTO_E_UNAUTHORIZED, PROTO_E_NOT_FOUND, PROTO_E_BUSY,
-                                  PROTO_E_DEVICE, 0};
+                                  PROTO_E_LIMIT,        PROTO_E_DEVICE,    0};
+static const int create_errors[] = {PROTO_E_UNAUTHORIZED, PROTO_E_NOT_FOUND, PROTO_E_LIMIT, 0};
 static const int set_errors[] = {PROTO_E_UNAUTHORIZED, PROTO_E_NOT_FOUND, PROTO_E_LIMIT, 0};
 
 #define OBJ(f)                                                                                     \
@@ -477,7 +478,7 @@ const method_t method_scene_create = {
     .summary = "Creates a named scene, with its own state and clock, from a preset or defaults.",
     .params = OBJ(create_params),
     .result = "{name}",
-    .errors = scene_errors,
+    .errors = create_errors,
     .handler = scene_create_m};
 const method_t method_scene_delete = {.name = "scene.delete",
                                       .summary = "Deletes a scene; its subscriptions end.",
@@ -501,9 +502,11 @@ const method_t method_scene_set = {
     .errors = set_errors,
     .handler = scene_set_m};
 const method_t method_sim_step = {.name = "sim.step",
-                                  .summary = "Advances the scene's simulations by 'steps' steps.",
+                                  .summary = "Advances the scene's simulations by 'steps' steps, "
+                                             "in slices that other scenes' renders run between.",
                                   .params = OBJ(step_params),
-                                  .result = "{time, frame}",
+                                  .result = "{time, frame, cut_short?}: the clock where the "
+                                            "stepping ended, and why when it ended early",
                                   .errors = step_errors,
                                   .handler = sim_step};
 const method_t method_sim_play = {

@@ -207,6 +207,71 @@ static double norm3(const double v[3]) {
   return sqrt(v[0] * v[0] + v[1] * v[1] + v[2] * v[2]);
 }
 
+/* An item's id and its index, for finding repeated ids. */
+typedef struct id_at {
+  const char *id;
+  int i;
+} id_at_t;
+
+static int id_at_cmp(const void *a, const void *b) {
+  const id_at_t *x = a, *y = b;
+  int c = strcmp(x->id, y->id);
+  return c ? c : (x->i > y->i) - (x->i < y->i);
+}
+
+/*
+ * The first item (in document order) whose id an earlier item has, among the 'n' in 'v' (ids
+ * not empty), with that earlier item's index in '*first'; -1 when the ids are unique. Sorted,
+ * not compared pairwise: a thousand objects would make half a million comparisons of every
+ * change of the scene.
+ */
+static int repeated_id(id_at_t *v, int n, int *first) {
+  qsort(v, (size_t)n, sizeof *v, id_at_cmp);
+  int best = -1;
+  for (int k = 1; k < n; k++) {
+    /* v[k] is the second of its run of equal ids: the first item to repeat that id. */
+    int second =
+        strcmp(v[k].id, v[k - 1].id) == 0 && (k < 2 || strcmp(v[k - 1].id, v[k - 2].id) != 0);
+    if (second && (best < 0 || v[k].i < best)) {
+      best = v[k].i;
+      *first = v[k - 1].i;
+    }
+  }
+  return best;
+}
+
+/* The objects' checks: a mesh names its file, ids are unique when not empty; the first object
+ * at fault is named. */
+static int check_objects(const cJSON *objs, scene_error_t *err) {
+  int n = cJSON_GetArraySize(objs), nids = 0, mesh = -1, i = 0, j = -1;
+  id_at_t *ids = malloc(((size_t)n + 1) * sizeof *ids);
+  if (!ids)
+    return set_err(err, PROTO_E_INTERNAL, "", "out of memory");
+  for (const cJSON *o = objs->child; o; o = o->next, i++) {
+    const cJSON *file = get(o, "file");
+    if (mesh < 0 && strcmp(get(o, "shape")->valuestring, "mesh") == 0 &&
+        (!file || !file->valuestring[0]))
+      mesh = i;
+    const char *id = get(o, "id")->valuestring;
+    if (id[0])
+      ids[nids++] = (id_at_t){id, i};
+  }
+  int dup = repeated_id(ids, nids, &j);
+  char p[64];
+  int rc = 0;
+  if (mesh >= 0 && (dup < 0 || mesh <= dup)) {
+    snprintf(p, sizeof p, "objects.%d.file", mesh);
+    rc = set_err(err, PROTO_E_INVALID_PARAMS, p,
+                 "%s: a mesh object needs a file (an OBJ path under the data directory)", p);
+  } else if (dup >= 0) {
+    snprintf(p, sizeof p, "objects.%d.id", dup);
+    rc = set_err(err, PROTO_E_INVALID_PARAMS, p, "%s: \"%s\" is already the id of objects.%d", p,
+                 get(cJSON_GetArrayItem(objs, dup), "id")->valuestring, j);
+  }
+  free(ids);
+  return rc;
+}
+
 /* The checks that involve more than one field, on a document that passed the schema. */
 static int check_cross(const cJSON *doc, scene_error_t *err) {
   const cJSON *cam = get(doc, "camera");
@@ -234,31 +299,7 @@ static int check_cross(const cJSON *doc, scene_error_t *err) {
   if (!(near_ < far_))
     return set_err(err, PROTO_E_INVALID_PARAMS, "camera.far",
                    "camera.far: %g must be greater than camera.near (%g)", far_, near_);
-
-  const cJSON *objs = get(doc, "objects");
-  int i = 0;
-  for (const cJSON *o = objs->child; o; o = o->next, i++) {
-    char p[64];
-    const cJSON *file = get(o, "file");
-    if (strcmp(get(o, "shape")->valuestring, "mesh") == 0 && (!file || !file->valuestring[0])) {
-      snprintf(p, sizeof p, "objects.%d.file", i);
-      return set_err(err, PROTO_E_INVALID_PARAMS, p,
-                     "%s: a mesh object needs a file (an OBJ path under the data directory)", p);
-    }
-    const char *id = get(o, "id")->valuestring;
-    if (!id[0])
-      continue;
-    /* Quadratic, but there are at most 1024 objects and ids are short. */
-    int j = 0;
-    for (const cJSON *q = objs->child; q != o; q = q->next, j++) {
-      if (strcmp(get(q, "id")->valuestring, id) == 0) {
-        snprintf(p, sizeof p, "objects.%d.id", i);
-        return set_err(err, PROTO_E_INVALID_PARAMS, p, "%s: \"%s\" is already the id of objects.%d",
-                       p, id, j);
-      }
-    }
-  }
-  return 0;
+  return check_objects(get(doc, "objects"), err);
 }
 
 /* Most animation keys in one document (limits.keyframes); unlimited until set. */

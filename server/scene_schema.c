@@ -230,7 +230,8 @@ static const sch_field_t wave_anim_fields[] = {
      .type = SCH_ARRAY,
      .desc = "Keyframe animation: at least one key, t strictly increasing; the field takes the "
              "interpolated value at sim.time, the first key's value before it and the last "
-             "key's after it. Excludes target and rate.",
+             "key's after it. Excludes target and rate. All of a scene's entries together hold "
+             "at most limits.keyframes keys.",
      .max = 1024,
      .items = &anim_key_item,
      .flags = SCH_NO_DEFAULT},
