@@ -93,6 +93,8 @@ static void cloud_run(renderer_t *r, job_t *j) {
   int still = 0;
   for (unsigned f = 0; f < frames; f++) {
     for (unsigned i = 0; i < per && taken < cj->steps; i++, taken++) {
+      if (j->halt && atomic_load_explicit(j->halt, memory_order_relaxed))
+        goto halted; /* A frame of a huge grid takes seconds; a stopping server does not wait. */
       if (!still)
         still = cj->cfg.params.rules == CLOUD_KUROMIYA && !cloud_cells_any(cur, CLOUD_ACT);
       if (still) {
@@ -150,15 +152,20 @@ static void cloud_run(renderer_t *r, job_t *j) {
   cloud_cells_unref(buf[0]);
   cloud_cells_unref(buf[1]);
   return;
+halted:
+  j->code = PROTO_E_BUSY;
+  snprintf(j->err, sizeof j->err, "the server is shutting down");
+  goto fail;
 oom:
+  j->code = PROTO_E_INTERNAL;
+  snprintf(j->err, sizeof j->err, "out of memory for a %ux%ux%u cloud", src->n[0], src->n[1],
+           src->n[2]);
+fail:
   density_grid_unref(d);
   reclaim_free(next, n * sizeof *next);
   reclaim_free(still_d, n * sizeof *still_d);
   cloud_cells_unref(buf[0]);
   cloud_cells_unref(buf[1]);
-  j->code = PROTO_E_INTERNAL;
-  snprintf(j->err, sizeof j->err, "out of memory for a %ux%ux%u cloud", src->n[0], src->n[1],
-           src->n[2]);
 }
 
 /* Loop thread: publishes the result and answers the call. */

@@ -27,6 +27,7 @@ struct worker {
   int depth;
   int max_queue;
   int stop;        /* The render thread stops. */
+  atomic_int halt; /* Set with 'stop', read by running jobs without the lock (job_t.halt). */
   int encode_stop; /* The encoder stops once its queue is empty (set after 'stop' is joined). */
   renderer_t *renderer;
 };
@@ -164,6 +165,7 @@ worker_t *worker_start(uv_loop_t *loop, renderer_t *r, int max_queue) {
   if (!w)
     return NULL;
   w->loop = loop;
+  atomic_init(&w->halt, 0);
   w->renderer = r;
   w->max_queue = max_queue;
   uv_mutex_init(&w->mu);
@@ -196,6 +198,7 @@ int worker_submit(worker_t *w, job_t *j) {
     return -1;
   }
   j->t_queued_ns = mono_ns();
+  j->halt = &w->halt;
   push(&w->todo_head, &w->todo_tail, j);
   w->depth++;
   uv_cond_signal(&w->cv);
@@ -221,6 +224,7 @@ static void on_async_closed(uv_handle_t *h) {
 void worker_stop(worker_t *w) {
   uv_mutex_lock(&w->mu);
   w->stop = 1;
+  atomic_store(&w->halt, 1);
   job_t *cancelled = w->todo_head;
   w->todo_head = w->todo_tail = NULL;
   w->depth = 0;

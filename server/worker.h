@@ -7,6 +7,7 @@
 #ifndef VOLFX_WORKER_H
 #define VOLFX_WORKER_H
 
+#include <stdatomic.h>
 #include <uv.h>
 
 #include "render.h"
@@ -38,6 +39,9 @@ struct job {
    * when 'max_queue' jobs wait, since refusing it would strand the work half done. Cancelled
    * at shutdown like any other. */
   int continues;
+  /* Set by worker_submit: non-zero once the worker is stopping. A 'run' that can take long may
+   * look at it and end early with PROTO_E_BUSY (nothing it would have made is wanted then). */
+  const atomic_int *halt;
   void (*done)(job_t *j); /* Runs on the loop thread; frees the job. */
   void *ctx;
 };
