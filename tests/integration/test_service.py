@@ -8,8 +8,11 @@ is the stream JOURNAL_STREAM names and the plain format otherwise, the unit file
 `systemd-analyze verify` with an exposure score of at most 3.0, the sysusers.d file creating
 the volfx user, and volfxd with the shipped example config rendering a frame, compiling its
 kernels into an empty cache, under the unit's file-system and privilege settings rebuilt with
-unshare and setpriv (tests/integration/service_sandbox.sh). The checks that need
-systemd-analyze, systemd-sysusers or root are skipped (with a note) where those are missing.
+unshare and setpriv (tests/integration/service_sandbox.sh). Where systemd can be booted in
+private namespaces (root, cgroup2, overlayfs: tests/integration/service_systemd.sh), the unit
+itself runs there too: active only once ready, every sandboxing setting applied, a reload with a
+broken config file logged at priority err, a clean stop. The checks that need systemd-analyze,
+systemd-sysusers, root or a bootable systemd are skipped (with a note) where those are missing.
 
     python3 tests/integration/test_service.py --bin build/bin
 """
@@ -36,6 +39,7 @@ UNIT = os.path.join(ROOT, "deploy", "volfxd.service")
 SYSUSERS = os.path.join(ROOT, "deploy", "volfx.sysusers.conf")
 EXAMPLE_CONFIG = os.path.join(ROOT, "deploy", "volfxd.example.json")
 SANDBOX = os.path.join(ROOT, "tests", "integration", "service_sandbox.sh")
+SYSTEMD_BOOT = os.path.join(ROOT, "tests", "integration", "service_systemd.sh")
 MAX_EXPOSURE = 3.0
 
 
@@ -396,17 +400,23 @@ def sandbox_usable():
     return None
 
 
-def child_pid(pid, timeout=10):
-    """The pid of the only child of 'pid' (volfxd, under unshare --fork)."""
+def child_pid(pid, comm, timeout=30):
+    """The pid of the child of 'pid' that runs the program named 'comm' (the process unshare
+    --fork started, once it has exec'd), or None."""
     deadline = time.monotonic() + timeout
     while time.monotonic() < deadline:
         try:
             with open("/proc/%d/task/%d/children" % (pid, pid)) as f:
-                kids = f.read().split()
-            if kids:
-                return int(kids[0])
+                kids = [int(k) for k in f.read().split()]
         except OSError:
-            pass
+            return None
+        for k in kids:
+            try:
+                with open("/proc/%d/comm" % k) as f:
+                    if f.read().strip() == comm:
+                        return k
+            except OSError:
+                pass
         time.sleep(0.05)
     return None
 
@@ -435,8 +445,9 @@ def hardened(s):
                    "status %s: %s" % (p.returncode, p.stderr.read().decode("utf-8", "replace")))
             return
         s.note("started in %.1f s, compiling every kernel" % (time.monotonic() - t0))
-        pid = child_pid(p.pid)
-        s.check(pid is not None, "volfxd's pid under unshare")
+        pid = child_pid(p.pid, "volfxd")
+        if not s.check(pid is not None, "volfxd's pid under unshare"):
+            return
         root = "/proc/%d/root" % pid
         cache = os.path.join(root, "var/cache/volfx/pocl")
         s.check(os.path.isdir(cache) and os.listdir(cache),
@@ -468,6 +479,160 @@ def hardened(s):
             p.wait()
         p.stdout.close()
         p.stderr.close()
+
+
+def systemd_usable():
+    """Why systemd cannot be booted in namespaces here, or None."""
+    if os.geteuid() != 0:
+        return "not root"
+    if not os.access("/lib/systemd/systemd", os.X_OK):
+        return "no /lib/systemd/systemd (Debian package systemd)"
+    for tool in ("unshare", "nsenter", "systemd-sysusers"):
+        if not shutil.which(tool):
+            return "no %s" % tool
+    return sandbox_usable()
+
+
+def sanitized(path):
+    """True when the executable at 'path' was built with AddressSanitizer."""
+    with open(path, "rb") as f:
+        return b"__asan_init" in f.read()
+
+
+def free_port():
+    with socket.socket() as so:
+        so.bind(("127.0.0.1", 0))
+        return so.getsockname()[1]
+
+
+def remove_cgroup(path):
+    """Removes the cgroup tree at 'path' once its processes are gone (a few seconds at most)."""
+    for _ in range(50):
+        for d, _, _ in sorted(os.walk(path), key=lambda w: -w[0].count("/")):
+            try:
+                os.rmdir(d)
+            except OSError:
+                pass
+        if not os.path.exists(path):
+            return
+        time.sleep(0.1)
+
+
+@T
+def under_systemd(s):
+    """The unit itself, under systemd booted in private namespaces, where that is possible."""
+    why = systemd_usable()
+    if why:
+        s.note("skipped the run under systemd: %s" % why)
+        return
+    work = tempfile.mkdtemp(prefix="volfx-systemd-")
+    volfxd = os.path.join(s.bin, "volfxd")
+    port = free_port()
+    with open(EXAMPLE_CONFIG) as f:
+        cfg = json.load(f)
+    cfg["listen"] = "127.0.0.1:%d" % port
+    cfg_path = os.path.join(work, "volfxd.json")
+    with open(cfg_path, "w") as f:
+        json.dump(cfg, f)
+    args = ["sh", SYSTEMD_BOOT, os.path.join(work, "root"), volfxd, cfg_path,
+            os.path.join(ROOT, "scenes")]
+    os.makedirs(os.path.join(work, "root"))
+    if sanitized(volfxd):
+        # The system call filter refuses ptrace, which LeakSanitizer's exit check needs.
+        dropin = os.path.join(work, "test.conf")
+        with open(dropin, "w") as f:
+            f.write("[Service]\nEnvironment=ASAN_OPTIONS=detect_leaks=0:detect_odr_violation=0\n"
+                    "Environment=UBSAN_OPTIONS=print_stacktrace=1:halt_on_error=1\n")
+        args.append(dropin)
+    log = open(os.path.join(work, "boot.log"), "w+b")
+    p = subprocess.Popen(args, stdin=subprocess.DEVNULL, stdout=log, stderr=log)
+    pid = None
+
+    def sctl(*cmd, timeout=60):
+        r = subprocess.run(["nsenter", "-t", str(pid), "-m", "-p", "--"] + list(cmd),
+                           capture_output=True, text=True, timeout=timeout)
+        return r.returncode, r.stdout.strip(), r.stderr.strip()
+
+    def boot_log():
+        log.seek(0)
+        return log.read().decode("utf-8", "replace")[-2000:]
+
+    try:
+        pid = child_pid(p.pid, "systemd")
+        state = ""
+        deadline = time.monotonic() + 180
+        while time.monotonic() < deadline and p.poll() is None:
+            rc, state, _ = sctl("systemctl", "is-active", "volfxd")
+            if state in ("active", "failed"):
+                break
+            time.sleep(0.25)
+        if p.poll() is not None or pid is None or state == "":
+            s.note("skipped the run under systemd: it did not boot here: " + boot_log())
+            return
+        if not s.eq(state, "active", "volfxd.service becomes active (READY=1) under systemd"):
+            print(sctl("journalctl", "-u", "volfxd", "--no-pager")[1][-3000:])
+            return
+        _, show, _ = sctl("systemctl", "show", "-p", "StatusText", "-p", "Type", "volfxd")
+        s.check("Type=notify" in show and "StatusText=serving on 127.0.0.1:%d" % port in show,
+                "the unit's status line names the address", show)
+        c = mock.Conn("127.0.0.1", port, timeout=120)
+        res, png = c.ok("render", {"width": 96, "height": 64})
+        s.check(png and mock.png_info(png)[:2] == (96, 64), "a frame renders under the unit",
+                res)
+        c.ok("scene.save", {"file": "under-systemd.snap"})
+        root = os.path.join(work, "root")
+        snap = os.path.join(root, "var", "lib", "volfx", "under-systemd.snap")
+        with open(os.path.join(root, "etc", "passwd")) as f:
+            uid = [int(u.split(":")[2]) for u in f.read().splitlines()
+                   if u.startswith("volfx:")]
+        s.check(os.path.isfile(snap) and uid and os.stat(snap).st_uid == uid[0],
+                "the snapshot is in StateDirectory, owned by the volfx user")
+        cache = os.path.join(root, "var", "cache", "volfx", "pocl")
+        s.check(os.path.isdir(cache) and os.listdir(cache),
+                "PoCL compiled into CacheDirectory under the unit's sandbox")
+        info = unix_info("/proc/%d/root/run/volfx/volfxd.sock" % pid)
+        s.eq(info.get("result", {}).get("name"), "volfxd", "the Unix socket in /run/volfx")
+
+        # A reload with a broken config file: volfxd runs on, and the error has priority 3.
+        sctl("sh", "-c", "echo '{ broken' >/etc/volfx/volfxd.json")
+        rc, _, err = sctl("systemctl", "reload", "volfxd")
+        s.eq(rc, 0, "systemctl reload volfxd")
+        s.eq(c.ok("server.info", {})[0]["name"], "volfxd", "serving after the reload")
+        found = ""
+        for _ in range(40):
+            _, found, _ = sctl("journalctl", "-u", "volfxd", "-p", "err", "--no-pager", "-q",
+                               "-o", "cat")
+            if "cannot read the configuration" in found:
+                break
+            time.sleep(0.25)
+        s.check("cannot read the configuration" in found,
+                "journalctl -p err shows the error logged on reload", found)
+        _, infos, _ = sctl("journalctl", "-u", "volfxd", "-p", "err", "--no-pager", "-q",
+                           "-o", "cat", "--grep", "ready in")
+        s.check("ready in" not in infos, "info lines are not errors", infos)
+        c.close()
+
+        rc, _, err = sctl("systemctl", "stop", "volfxd", timeout=90)
+        _, show, _ = sctl("systemctl", "show", "-p", "Result", "-p", "ExecMainStatus", "volfxd")
+        s.check(rc == 0 and "Result=success" in show and "ExecMainStatus=0" in show,
+                "systemctl stop ends volfxd cleanly", show + err)
+    finally:
+        if pid:
+            try:
+                os.kill(pid, signal.SIGKILL)
+            except OSError:
+                pass
+        try:
+            p.wait(30)
+        except subprocess.TimeoutExpired:
+            p.kill()
+            p.wait()
+        log.close()
+        cg = os.path.join(work, "root", "cgroup")
+        if os.path.exists(cg):
+            with open(cg) as f:
+                remove_cgroup(f.read().strip())
+        shutil.rmtree(work, ignore_errors=True)
 
 
 if __name__ == "__main__":
