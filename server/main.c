@@ -44,7 +44,12 @@ static struct {
  * needs no reopening: it is a stream (the journal's, or whatever the caller redirected it to).
  */
 static void on_sighup(uv_signal_t *h, int signum) {
-  (void)h, (void)signum;
+  server_t *s = h->data;
+  (void)signum;
+  if (s->stopping) {
+    LOG(LOG_INFO, "server", "SIGHUP while stopping: ignored");
+    return;
+  }
   service_reloading();
   config_t *c = malloc(sizeof *c);
   log_level_t before = log_threshold;
@@ -207,6 +212,7 @@ int main(int argc, char **argv) {
   /* SIGHUP and the stop watch do not keep the loop alive; they are closed with whatever is left
    * once it ends. */
   uv_signal_init(s->loop, &reload.signal);
+  reload.signal.data = s;
   uv_signal_start(&reload.signal, on_sighup, SIGHUP);
   uv_unref((uv_handle_t *)&reload.signal);
   uv_check_init(s->loop, &reload.stop_watch);
