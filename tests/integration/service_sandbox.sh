@@ -45,6 +45,20 @@ mkdir -p /usr/local/bin /usr/local/etc/volfx /usr/local/share/volfx
 cp "$SANDBOX_VOLFXD" /usr/local/bin/volfxd
 cp "$SANDBOX_CONFIG" /usr/local/etc/volfx/volfxd.json
 cp -r "$SANDBOX_SCENES" /usr/local/share/volfx/scenes
+# A sanitizer build'"'"'s leak suppressions, which may lie under a directory hidden below.
+supp= opts=
+IFS=:
+for o in ${LSAN_OPTIONS:-}; do
+  case "$o" in
+    suppressions=*) supp=${o#suppressions=} o=suppressions=/usr/local/etc/volfx/lsan.supp ;;
+  esac
+  opts=${opts:+$opts:}$o
+done
+unset IFS
+if [ -n "$supp" ] && [ -r "$supp" ]; then
+  cp "$supp" /usr/local/etc/volfx/lsan.supp
+  LSAN_OPTIONS=$opts
+fi
 mount -o remount,ro /usr/local
 
 # RuntimeDirectory=, StateDirectory=, CacheDirectory= (mode 0750, owned by the user), PrivateTmp=.
