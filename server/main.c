@@ -28,7 +28,8 @@ static void on_signal(uv_signal_t *h, int signum) {
   server_request_stop(s);
 }
 
-/* What SIGHUP needs: the command line to read the configuration again. */
+/* main's side of the service manager: SIGHUP's handle and the command line it reads the
+ * configuration from again, the watch that reports a stop, and the STATUS= line. */
 static struct {
   uv_signal_t signal;
   uv_check_t stop_watch; /* Tells the service manager once a stop has begun, however begun. */
