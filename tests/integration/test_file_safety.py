@@ -61,10 +61,6 @@ def tree(root):
     return out
 
 
-def codes_of(answers):
-    return sorted({(a.get("error") or {}).get("code") for a in answers if "error" in a})
-
-
 # --------------------------------------------------------------------------------------------
 # Finding 10: a directory swapped for a link while requests run
 
