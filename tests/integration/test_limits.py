@@ -26,12 +26,11 @@ import signal
 import struct
 import sys
 import tempfile
-import threading
 import time
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 import mock  # noqa: E402
-from mock import E_BUSY, E_LIMIT, E_NOT_FOUND, expect_error  # noqa: E402
+from mock import E_LIMIT, E_NOT_FOUND, expect_error  # noqa: E402
 
 suite = mock.Suite("test_limits", timeout_s=500)
 suite.server_args = []
