@@ -195,7 +195,7 @@ const config_limit_t config_limits[] = {
     LIMIT("scene_bytes", 1 << 20, 1e13, budget.scene_bytes, 'z'),
     LIMIT("keyframes", 1, 1 << 20, budget.keyframes, 'u'),
     LIMIT("automaton_steps", 1, 1e9, budget.automaton_steps, 'u'),
-    LIMIT("job_frames", 1, 9007199254740991.0, budget.job_frames, 'u'),
+    LIMIT("job_frames", 1, 4294967295.0, budget.job_frames, 'u'),
     LIMIT("job_bytes", 1 << 20, 1e15, budget.job_bytes, 'z'),
     LIMIT("data_reserve_bytes", 0, 1e15, budget.data_reserve_bytes, 'z'),
     {0},

@@ -8,6 +8,7 @@
 #include "jobs.h"
 #include "reclaim.h"
 #include "frames.h"
+#include "scene.h"
 #include "worker.h"
 
 static cJSON *limits_json(const server_t *s) {
@@ -85,6 +86,7 @@ static void stats(call_t *call) {
   cJSON_AddNumberToObject(mem, "rss_bytes", (double)stats_rss_bytes());
   cJSON_AddNumberToObject(mem, "output_queued_bytes", (double)queued);
   cJSON_AddNumberToObject(mem, "output_total_bytes", (double)s->output_total);
+  cJSON_AddNumberToObject(mem, "scene_bytes", (double)scene_sim_bytes_total());
   cJSON_AddNumberToObject(r, "unauthenticated", s->nunauth);
   cJSON_AddNumberToObject(mem, "kept_bytes", (double)reclaim_kept_bytes());
   call_result(call, r);
