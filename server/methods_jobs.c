@@ -76,8 +76,7 @@ struct seq_job {
 typedef struct {
   uv_work_t req;
   seq_job_t *job;
-  char path[PATH_MAX];
-  char file[300];
+  char file[300];       /* Under the data directory, opened beneath its descriptor. */
   unsigned char *bytes; /* A frame's bytes, or NULL for 'snap'. */
   size_t n;             /* The frame's bytes; after the write, the file's. */
   uint64_t size;        /* What the file will take: n, or a snapshot's estimate. */
@@ -175,9 +174,9 @@ static void write_work(uv_work_t *req) {
   if (reserve_check(w->dir, w->size, w->reserve, w->short_of, sizeof w->short_of) != 0)
     return;
   if (w->snap)
-    w->err = snapshot_out_write(w->snap, w->path, &w->n, &w->step);
+    w->err = snapshot_out_write(w->snap, w->file, &w->n, &w->step);
   else
-    w->err = files_write_atomic(w->path, w->bytes, w->n, &w->step);
+    w->err = files_write_atomic(w->file, w->bytes, w->n, &w->step);
 }
 
 /* The frame after 'f' that the job visits; f itself when there is none. */
@@ -235,8 +234,7 @@ static void queue_write(seq_job_t *job, seq_write_t *w) {
             "cannot write \"%s\": its %llu bytes would take the job's files past %llu bytes, the "
             "limit (limits.job_bytes)",
             w->file, (unsigned long long)w->size, (unsigned long long)b->job_bytes);
-  } else if (datapath_resolve(job->srv->cfg.data_dir, w->file, 0, w->path, sizeof w->path, why,
-                              sizeof why, NULL) != 0) {
+  } else if (datapath_check(w->file, why, sizeof why) != 0) {
     job_end(job, JOB_FAILED, "%s", why);
   } else {
     w->req.data = w;
@@ -475,34 +473,6 @@ static int frames_fit(call_t *call, uint64_t frames) {
   return 0;
 }
 
-/* Makes 'dir' and each missing directory above it, all under the data directory. Returns 0,
- * or -1 with 'why' set. */
-static int make_dirs(const char *data_dir, const char *dir, char *why, size_t whylen) {
-  char part[256], path[PATH_MAX];
-  size_t n = strlen(dir);
-  for (size_t i = 1; i <= n; i++) {
-    if (dir[i] != '/' && dir[i] != '\0')
-      continue;
-    snprintf(part, sizeof part, "%.*s", (int)i, dir);
-    int missing = 0;
-    if (datapath_resolve(data_dir, part, 1, path, sizeof path, why, whylen, &missing) != 0) {
-      if (!missing ||
-          datapath_resolve(data_dir, part, 0, path, sizeof path, why, whylen, NULL) != 0)
-        return -1;
-      if (mkdir(path, 0755) != 0 && errno != EEXIST) {
-        snprintf(why, whylen, "cannot create directory \"%s\": %s", part, strerror(errno));
-        return -1;
-      }
-    }
-    struct stat st;
-    if (stat(path, &st) != 0 || !S_ISDIR(st.st_mode)) {
-      snprintf(why, whylen, "\"%s\" is not a directory", part);
-      return -1;
-    }
-  }
-  return 0;
-}
-
 /* The file name extension of each format. */
 static const char *ext_of(const char *format) {
   static const char *const exts[] = {"png", "rgba8", "rgbaf32", "f32"};
@@ -552,8 +522,17 @@ static int job_admit(call_t *call, scene_entry_t *e, const char *dir) {
                "invalid params: the server has no data directory (--data) to write files to");
     return -1;
   }
-  if (make_dirs(s->cfg.data_dir, dir, why, sizeof why) != 0) {
-    call_error(call, PROTO_E_INVALID_PARAMS, "dir", "invalid params: dir: %s", why);
+  int code = datapath_check(dir, why, sizeof why);
+  if (code != 0) {
+    call_error(call, code, "dir", "%s: dir: %s", proto_err_message(code), why);
+    return -1;
+  }
+  /* Made beneath the data directory's descriptor, component by component, following no link
+   * out of it. */
+  int err = datapath_mkdirs(dir);
+  if (err != 0) {
+    code = datapath_error(err, dir, 1, 0, why, sizeof why);
+    call_error(call, code, "dir", "%s: dir: %s", proto_err_message(code), why);
     return -1;
   }
   return 0;
@@ -660,7 +639,7 @@ typedef struct {
   uv_work_t req;
   seq_job_t *job;
   call_t *call;
-  char path[PATH_MAX];
+  char file[300];  /* The manifest's name under the data directory. */
   cJSON *manifest; /* What bake.json must hold. */
   int err;         /* errno of a failed read or write. */
   const char *step;
@@ -670,7 +649,7 @@ typedef struct {
 static void prep_work(uv_work_t *req) {
   bake_prep_t *bp = req->data;
   size_t len = 0;
-  char *text = files_read(bp->path, 64u << 20, &len);
+  char *text = datapath_read(bp->file, 64u << 20, &len);
   if (!text) {
     if (errno != ENOENT) {
       bp->err = errno;
@@ -683,7 +662,7 @@ static void prep_work(uv_work_t *req) {
       bp->step = "encode";
       return;
     }
-    bp->err = files_write_atomic(bp->path, line, len, &bp->step);
+    bp->err = files_write_atomic(bp->file, line, len, &bp->step);
     free(line);
     return;
   }
@@ -712,10 +691,12 @@ static void prep_done(uv_work_t *req, int status) {
   bake_prep_t *bp = req->data;
   seq_job_t *job = bp->job;
   if (status != 0 || bp->err) {
-    call_error(bp->call, PROTO_E_INTERNAL, "dir", "internal error: cannot %s \"%s/%s\": %s",
-               bp->step ? bp->step : "read", job->dir, PROTO_BAKE_MANIFEST,
-               strerror(bp->err ? bp->err : EIO));
-    job_end(job, JOB_FAILED, "cannot %s its manifest", bp->step ? bp->step : "read");
+    char why[400];
+    int code = datapath_error(bp->err ? bp->err : EIO, bp->file,
+                              bp->step && strcmp(bp->step, "read"), 64u << 20, why, sizeof why);
+    call_error(bp->call, code, "dir", "%s: dir: cannot %s the manifest: %s",
+               proto_err_message(code), bp->step ? bp->step : "read", why);
+    job_end(job, JOB_FAILED, "cannot %s its manifest: %s", bp->step ? bp->step : "read", why);
   } else if (bp->bad[0]) {
     call_error(bp->call, PROTO_E_INVALID_PARAMS, "dir", "invalid params: dir \"%s\": %s", job->dir,
                bp->bad);
@@ -768,13 +749,14 @@ static void sim_bake(call_t *call) {
     call_error(call, PROTO_E_INTERNAL, NULL, "internal error: out of memory");
     return;
   }
-  if (datapath_resolve(call->srv->cfg.data_dir, file, 0, bp->path, sizeof bp->path, why, sizeof why,
-                       NULL) != 0) {
+  int code = datapath_check(file, why, sizeof why);
+  if (code != 0) {
     cJSON_Delete(bp->manifest);
     free(bp);
-    call_error(call, PROTO_E_INVALID_PARAMS, "dir", "invalid params: dir: %s", why);
+    call_error(call, code, "dir", "%s: dir: %s", proto_err_message(code), why);
     return;
   }
+  snprintf(bp->file, sizeof bp->file, "%s", file);
   seq_job_t *job = job_new(call, e, dir);
   if (!job) {
     cJSON_Delete(bp->manifest);

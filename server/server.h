@@ -222,7 +222,8 @@ scene_entry_t *server_find_scene(server_t *s, const char *name);
 scene_entry_t *server_add_scene(server_t *s, const char *name, const char *preset,
                                 scene_error_t *err);
 void server_remove_scene(server_t *s, scene_entry_t *e);
-/* Loads a preset by name (presets_dir/NAME.json) or a file path. NULL with 'err' set. */
+/* Loads a preset by name (presets_dir/NAME.json); only the operator's --scene (s->cfg.scene
+ * itself) may be a file path. NULL with 'err' set. */
 cJSON *server_load_preset(server_t *s, const char *name, scene_error_t *err);
 /* Starts the graceful stop from any loop callback. */
 void server_request_stop(server_t *s);

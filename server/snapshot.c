@@ -23,6 +23,7 @@
 #include "defer.h"
 #include "dispatch.h"
 #include "files.h"
+#include "reserve.h"
 #include "snapshot.h"
 
 #define SNAPSHOT_VERSION 1
@@ -44,8 +45,11 @@ typedef struct snap_work {
   char scene[64];
   int err; /* errno of the failed step, or 0. */
   const char *step;
-  snapshot_out_t *out; /* save: what is written. */
-  size_t written;      /* save: the file's size. */
+  snapshot_out_t *out;     /* save: what is written. */
+  size_t written;          /* save: the file's size. */
+  char data_dir[PATH_MAX]; /* save: for the free-space reserve. */
+  uint64_t reserve;        /* save: limits.data_reserve_bytes. */
+  char short_of[300];      /* save: why the reserve refused it; "" when it did not. */
   /* load: the bytes read and the sections found in them. */
   char *text;
   size_t len;
@@ -416,6 +420,14 @@ snapshot_out_t *snapshot_out_new(const scene_t *s) {
 /* Thread pool: writes the snapshot next to its final name, then renames it into place. */
 static void save_work(uv_work_t *req) {
   snap_work_t *w = req->data;
+  const snapshot_out_t *o = w->out;
+  uint64_t bytes =
+      o->len + (o->cells ? cloud_section_bytes(o->cells) : 0) + fluid_section_bytes(o->particles);
+  if (reserve_check(w->data_dir, bytes, w->reserve, w->short_of, sizeof w->short_of) != 0) {
+    w->err = ENOSPC;
+    w->step = "reserve";
+    return;
+  }
   w->err = snapshot_out_write(w->out, w->file, &w->written, &w->step);
 }
 
@@ -434,7 +446,10 @@ static void save_done(uv_work_t *req, int status) {
   if (status != 0 || w->err) {
     char why[256];
     int code = datapath_error(w->err ? w->err : EIO, w->file, 1, 0, why, sizeof why);
-    if (w->step && strcmp(w->step, "encode") == 0)
+    if (w->short_of[0])
+      call_error(call, PROTO_E_LIMIT, "file", "%s: file: %s", proto_err_message(PROTO_E_LIMIT),
+                 w->short_of);
+    else if (w->step && strcmp(w->step, "encode") == 0)
       call_error(call, PROTO_E_INTERNAL, NULL, "internal error: out of memory");
     else
       call_error(call, code, "file", "%s: file: %s", proto_err_message(code), why);
@@ -481,6 +496,8 @@ static void scene_save(call_t *call) {
     call_error(call, PROTO_E_INTERNAL, NULL, "internal error: out of memory");
     return;
   }
+  snprintf(w->data_dir, sizeof w->data_dir, "%s", call->srv->cfg.data_dir);
+  w->reserve = call->srv->cfg.budget.data_reserve_bytes;
   uv_queue_work(call->srv->loop, &w->req, save_work, save_done);
 }
 
@@ -587,8 +604,9 @@ static void load_done(uv_work_t *req, int status) {
       if (defer_check(call, rc, &err, &want)) {
         /* A file the snapshot names is being read: the call runs again after, from the top. */
       } else if (rc != 0) {
-        call_error(call, PROTO_E_INVALID_PARAMS, err.path[0] ? err.path : "file",
-                   "invalid params: snapshot \"%s\": %s", w->file, err.message);
+        int code = err.code ? err.code : PROTO_E_INVALID_PARAMS;
+        call_error(call, code, err.path[0] ? err.path : "file", "%s: snapshot \"%s\": %s",
+                   proto_err_message(code), w->file, err.message);
       } else {
         /* Playing is the server's state, not the file's. */
         cJSON *patch = cJSON_CreateObject();
