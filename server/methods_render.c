@@ -49,6 +49,13 @@ static int camera_override(scene_entry_t *e, const cJSON *over, rcamera_t *cam, 
     snprintf(msg, msglen, "invalid params: %s", err.message);
     return PROTO_E_INVALID_PARAMS;
   }
+  /* The same checks as scene.set's, so that a camera the scene refuses is not rendered. */
+  if (scene_check_camera(doc, &serr) != 0) {
+    cJSON_Delete(doc);
+    snprintf(path, pathlen, "%s", serr.path);
+    snprintf(msg, msglen, "invalid params: %s", serr.message);
+    return PROTO_E_INVALID_PARAMS;
+  }
   vec3_of(doc, "eye", cam->eye);
   vec3_of(doc, "target", cam->target);
   vec3_of(doc, "up", cam->up);
@@ -56,29 +63,6 @@ static int camera_override(scene_entry_t *e, const cJSON *over, rcamera_t *cam, 
   cam->near_ = (float)cJSON_GetObjectItem(doc, "near")->valuedouble;
   cam->far_ = (float)cJSON_GetObjectItem(doc, "far")->valuedouble;
   cJSON_Delete(doc);
-
-  float f3[3] = {cam->target[0] - cam->eye[0], cam->target[1] - cam->eye[1],
-                 cam->target[2] - cam->eye[2]};
-  float fl = sqrtf(f3[0] * f3[0] + f3[1] * f3[1] + f3[2] * f3[2]);
-  float cx = f3[1] * cam->up[2] - f3[2] * cam->up[1];
-  float cy = f3[2] * cam->up[0] - f3[0] * cam->up[2];
-  float cz = f3[0] * cam->up[1] - f3[1] * cam->up[0];
-  float ul = sqrtf(cam->up[0] * cam->up[0] + cam->up[1] * cam->up[1] + cam->up[2] * cam->up[2]);
-  if (!(fl > 0)) {
-    snprintf(path, pathlen, "camera.target");
-    snprintf(msg, msglen, "invalid params: camera.target must differ from camera.eye");
-    return PROTO_E_INVALID_PARAMS;
-  }
-  if (!(sqrtf(cx * cx + cy * cy + cz * cz) > 1e-6f * fl * ul)) {
-    snprintf(path, pathlen, "camera.up");
-    snprintf(msg, msglen, "invalid params: camera.up is parallel to the view direction");
-    return PROTO_E_INVALID_PARAMS;
-  }
-  if (!(cam->near_ < cam->far_)) {
-    snprintf(path, pathlen, "camera.far");
-    snprintf(msg, msglen, "invalid params: camera.far must be greater than camera.near");
-    return PROTO_E_INVALID_PARAMS;
-  }
   return 0;
 }
 

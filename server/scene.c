@@ -272,9 +272,7 @@ static int check_objects(const cJSON *objs, scene_error_t *err) {
   return rc;
 }
 
-/* The checks that involve more than one field, on a document that passed the schema. */
-static int check_cross(const cJSON *doc, scene_error_t *err) {
-  const cJSON *cam = get(doc, "camera");
+int scene_check_camera(const cJSON *cam, scene_error_t *err) {
   double eye[3], target[3], up[3], fwd[3];
   vec3d(get(cam, "eye"), eye);
   vec3d(get(cam, "target"), target);
@@ -299,6 +297,13 @@ static int check_cross(const cJSON *doc, scene_error_t *err) {
   if (!(near_ < far_))
     return set_err(err, PROTO_E_INVALID_PARAMS, "camera.far",
                    "camera.far: %g must be greater than camera.near (%g)", far_, near_);
+  return 0;
+}
+
+/* The checks that involve more than one field, on a document that passed the schema. */
+static int check_cross(const cJSON *doc, scene_error_t *err) {
+  if (scene_check_camera(get(doc, "camera"), err) != 0)
+    return -1;
   return check_objects(get(doc, "objects"), err);
 }
 

@@ -82,6 +82,14 @@ typedef struct scene_error {
   char message[256];
 } scene_error_t;
 
+/*
+ * The camera's checks across its fields, on a camera that passed the schema: target away from
+ * eye (relative to their size), up neither zero nor parallel to the view, near before far.
+ * scene.set and a render's camera override both use it. Returns 0, or -1 with 'err' naming the
+ * field.
+ */
+int scene_check_camera(const cJSON *camera, scene_error_t *err);
+
 /* The schema of a whole scene document (SPEC §4), for validation and rpc.discover. */
 extern const sch_field_t scene_schema;
 

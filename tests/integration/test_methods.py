@@ -538,6 +538,19 @@ def render_beauty(s):
          "camera override does not change the scene")
     _, raw8c = c.ok("render", {"scene": "r1", "width": w, "height": h, "format": "rgba8"})
     s.eq(raw8c, raw8, "the same frame renders the same bytes")
+    # A camera scene.set refuses is refused as an override too, with the same field and words.
+    bad_cams = [
+        ({"eye": [1000, 0, 0], "target": [1000, 0, 1e-4]}, "camera.target"),  # 1e-7 of the scale
+        ({"eye": [0, 0, 5], "target": [0, 0, 0], "up": [0, 0, 1]}, "camera.up"),
+        ({"near": 5, "far": 5}, "camera.far"),
+    ]
+    for cam, path in bad_cams:
+        es = mock.expect_error(s, c, "scene.set", {"scene": "r1", "patch": {"camera": cam}},
+                               mock.E_PARAMS, path)["error"]
+        er = mock.expect_error(s, c, "render", {"scene": "r1", "width": 8, "height": 8,
+                                                "camera": cam}, mock.E_PARAMS, path)["error"]
+        s.check(es.get("message", "").split(": ", 1)[-1] in er.get("message", ""),
+                "the override's error says what scene.set's does", (es, er))
     # t is echoed as given.
     t = {"k": [1, "x", None, True, 2.5], "s": "\u00e9\u2603"}
     rt, _ = c.ok("render", {"scene": "r1", "width": 8, "height": 8, "t": t})
