@@ -16,13 +16,18 @@ static void set_int(float *slot, int32_t v) {
   memcpy(slot, &v, sizeof v);
 }
 
-/* The rotation Rz * Ry * Rx for angles in degrees, so X is applied first. */
-static void rotation(const float deg[3], double r[3][3]) {
+void rotation_zyx(const double deg[3], double r[3][3]) {
   double a = deg[0] * (M_PI / 180), b = deg[1] * (M_PI / 180), c = deg[2] * (M_PI / 180);
   double ca = cos(a), sa = sin(a), cb = cos(b), sb = sin(b), cc = cos(c), sc = sin(c);
   r[0][0] = cc * cb, r[0][1] = cc * sb * sa - sc * ca, r[0][2] = cc * sb * ca + sc * sa;
   r[1][0] = sc * cb, r[1][1] = sc * sb * sa + cc * ca, r[1][2] = sc * sb * ca - cc * sa;
   r[2][0] = -sb, r[2][1] = cb * sa, r[2][2] = cb * ca;
+}
+
+/* An object's rotation matrix from its float angles (rotation_zyx). */
+static void rotation(const float deg[3], double r[3][3]) {
+  double d[3] = {deg[0], deg[1], deg[2]};
+  rotation_zyx(d, r);
 }
 
 static int usable_scale(const float s[3]) {

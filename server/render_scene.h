@@ -180,4 +180,9 @@ mesh_t *mesh_load_obj(const char *path, char *err, size_t errlen);
  * mesh_load_obj does, naming it 'name' in messages. The caller keeps 'text'. */
 mesh_t *mesh_parse_obj(char *text, size_t len, const char *name, char *err, size_t errlen);
 
+/* The rotation Rz * Ry * Rx of an object's 'rotation' (degrees about x, y, z; X applied first),
+ * the one the renderer, the fluid's colliders and the seeding of particles all use
+ * (render_objects.c). */
+void rotation_zyx(const double deg[3], double r[3][3]);
+
 #endif

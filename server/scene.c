@@ -526,13 +526,7 @@ static solid_t solid_of(const cJSON *o) {
   vec3d(get(o, "position"), b.c);
   vec3d(get(o, "rotation"), rot);
   vec3d(get(o, "scale"), sc);
-  /* R = Rz Ry Rx (X applied first), as the renderer and the simulation build it. */
-  double a = rot[0] * (M_PI / 180), bb = rot[1] * (M_PI / 180), cc = rot[2] * (M_PI / 180);
-  double ca = cos(a), sa = sin(a), cb = cos(bb), sb = sin(bb), cz = cos(cc), sz = sin(cc);
-  double r[3][3] = {{cz * cb, cz * sb * sa - sz * ca, cz * sb * ca + sz * sa},
-                    {sz * cb, sz * sb * sa + cz * ca, sz * sb * ca - cz * sa},
-                    {-sb, cb * sa, cb * ca}};
-  memcpy(b.r, r, sizeof r);
+  rotation_zyx(rot, b.r); /* As the renderer and the simulation build it. */
   for (int i = 0; i < 3; i++)
     b.semi[i] = 0.5 * fabs(sc[i]);
   return b;
