@@ -490,10 +490,9 @@ static int running_jobs(const server_t *s, const char *scene) {
   return n;
 }
 
-/* The checks every job starts with: the scene paused and without a running job, room for
- * one more job, and 'dir' made under the data directory. Returns 0, or -1 with the call
- * answered. */
-static int job_admit(call_t *call, scene_entry_t *e, const char *dir) {
+/* Whether a job of the scene of 'e' may start: the scene paused and without a running job, and
+ * room for one more job. Returns 0, or -1 with the call answered. */
+static int job_admit(call_t *call, scene_entry_t *e) {
   server_t *s = call->srv;
   if (uv_is_active((uv_handle_t *)&e->play)) {
     call_error(call, PROTO_E_INVALID_PARAMS, "scene",
@@ -511,13 +510,18 @@ static int job_admit(call_t *call, scene_entry_t *e, const char *dir) {
                JOBS_MAX_RUNNING);
     return -1;
   }
+  return 0;
+}
+
+/* Makes the job's 'dir' under the data directory. Returns 0, or -1 with the call answered. */
+static int job_dir(call_t *call, const char *dir) {
   char why[512];
   if (!dir[0]) {
     call_error(call, PROTO_E_INVALID_PARAMS, "dir",
                "invalid params: dir: must name a directory under the data directory");
     return -1;
   }
-  if (!s->cfg.data_dir[0]) {
+  if (!call->srv->cfg.data_dir[0]) {
     call_error(call, PROTO_E_INVALID_PARAMS, "dir",
                "invalid params: the server has no data directory (--data) to write files to");
     return -1;
@@ -605,11 +609,8 @@ static void render_sequence(call_t *call) {
                e->scene->name, now, (unsigned long long)first);
     return;
   }
-  if (uv_is_active((uv_handle_t *)&e->play) || running_jobs(s, e->scene->name) > 0 ||
-      running_jobs(s, NULL) >= JOBS_MAX_RUNNING) {
-    job_admit(call, e, dir); /* Answers why. */
+  if (job_admit(call, e) != 0)
     return;
-  }
   /* Check the frame params once now, so that a bad job is refused rather than failing later. */
   job_t probe;
   char path[128], msg[512];
@@ -619,7 +620,7 @@ static void render_sequence(call_t *call) {
     return;
   }
   render_scene_unref(probe.scene);
-  if (job_admit(call, e, dir) != 0)
+  if (job_dir(call, dir) != 0)
     return;
   seq_job_t *job = job_new(call, e, dir);
   if (!job)
@@ -728,7 +729,8 @@ static void sim_bake(call_t *call) {
                e->scene->name, now, (unsigned long long)last);
     return;
   }
-  if (!frames_fit(call, bake_total((uint64_t)now, last, every)) || job_admit(call, e, dir) != 0)
+  if (!frames_fit(call, bake_total((uint64_t)now, last, every)) || job_admit(call, e) != 0 ||
+      job_dir(call, dir) != 0)
     return;
   bake_prep_t *bp = calloc(1, sizeof *bp);
   char file[300], why[512];
