@@ -30,6 +30,9 @@ struct method {
     .def_str = "main"                                                                              \
   }
 
+/* A method's params: the OBJECT whose members are the fields 'f' (ended by {0}). */
+#define METHOD_PARAMS(f) (&(sch_field_t){.type = SCH_OBJECT, .fields = (f)})
+
 /* Every method, NULL-terminated (methods.c). */
 extern const method_t *const method_table[];
 

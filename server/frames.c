@@ -355,15 +355,14 @@ const method_t method_frames_subscribe = {
     .name = "frames.subscribe",
     .summary = "Pushes 'frames' notifications with attachments at up to 'fps'; latest frame "
                "wins and drops are counted.",
-    .params = &(sch_field_t){.type = SCH_OBJECT, .fields = subscribe_params},
+    .params = METHOD_PARAMS(subscribe_params),
     .result = "{id}",
     .errors = subscribe_errors,
     .handler = subscribe};
 
-const method_t method_frames_unsubscribe = {
-    .name = "frames.unsubscribe",
-    .summary = "Ends a subscription of this connection.",
-    .params = &(sch_field_t){.type = SCH_OBJECT, .fields = unsubscribe_params},
-    .result = "{id, sent, dropped}",
-    .errors = unsubscribe_errors,
-    .handler = unsubscribe};
+const method_t method_frames_unsubscribe = {.name = "frames.unsubscribe",
+                                            .summary = "Ends a subscription of this connection.",
+                                            .params = METHOD_PARAMS(unsubscribe_params),
+                                            .result = "{id, sent, dropped}",
+                                            .errors = unsubscribe_errors,
+                                            .handler = unsubscribe};

@@ -556,15 +556,10 @@ static const sch_field_t set_params[] = {
 static const int get_errors[] = {PROTO_E_UNAUTHORIZED, PROTO_E_NOT_FOUND, PROTO_E_LIMIT, 0};
 static const int set_errors[] = {PROTO_E_UNAUTHORIZED, PROTO_E_NOT_FOUND, PROTO_E_BUSY, 0};
 
-#define OBJ(f)                                                                                     \
-  &(sch_field_t) {                                                                                 \
-    .type = SCH_OBJECT, .fields = (f)                                                              \
-  }
-
 const method_t method_cloud_get_cells = {
     .name = "cloud.get_cells",
     .summary = "One field of the cloud's cells (hum, act, cld as u8 0/1) or its density (f32).",
-    .params = OBJ(get_params),
+    .params = METHOD_PARAMS(get_params),
     .result = "{field, dims, cells, step} and an attachment of one u8 or f32 per cell.",
     .errors = get_errors,
     .handler = get_cells_m};
@@ -572,7 +567,7 @@ const method_t method_cloud_set_cells = {
     .name = "cloud.set_cells",
     .summary = "Replaces one field of the cloud's cells or its density; validated as a whole, "
                "nothing changes on error.",
-    .params = OBJ(set_params),
+    .params = METHOD_PARAMS(set_params),
     .result = "{field, cells}",
     .errors = set_errors,
     .handler = set_cells_m};

@@ -590,22 +590,17 @@ static const sch_field_t get_params[] = {
 static const int set_errors[] = {PROTO_E_UNAUTHORIZED, PROTO_E_NOT_FOUND, PROTO_E_LIMIT, 0};
 static const int get_errors[] = {PROTO_E_UNAUTHORIZED, PROTO_E_NOT_FOUND, 0};
 
-#define OBJ(f)                                                                                     \
-  &(sch_field_t) {                                                                                 \
-    .type = SCH_OBJECT, .fields = (f)                                                              \
-  }
-
 const method_t method_fluid_set_particles = {
     .name = "fluid.set_particles",
     .summary = "Replaces the fluid's particles; validated as a whole, nothing changes on error.",
-    .params = OBJ(set_params),
+    .params = METHOD_PARAMS(set_params),
     .result = "{count}",
     .errors = set_errors,
     .handler = set_particles_m};
 const method_t method_fluid_get_particles = {
     .name = "fluid.get_particles",
     .summary = "The fluid's particle positions or velocities as little-endian f32 x, y, z.",
-    .params = OBJ(get_params),
+    .params = METHOD_PARAMS(get_params),
     .result = "{count, field} and an f32 attachment of 12 × count bytes.",
     .errors = get_errors,
     .handler = get_particles_m};

@@ -462,34 +462,29 @@ static const int step_errors[] = {PROTO_E_UNAUTHORIZED, PROTO_E_NOT_FOUND, PROTO
 static const int create_errors[] = {PROTO_E_UNAUTHORIZED, PROTO_E_NOT_FOUND, PROTO_E_LIMIT, 0};
 static const int set_errors[] = {PROTO_E_UNAUTHORIZED, PROTO_E_NOT_FOUND, PROTO_E_LIMIT, 0};
 
-#define OBJ(f)                                                                                     \
-  &(sch_field_t) {                                                                                 \
-    .type = SCH_OBJECT, .fields = (f)                                                              \
-  }
-
 const method_t method_scene_list = {.name = "scene.list",
                                     .summary = "The named scenes with their clocks.",
-                                    .params = OBJ(list_params),
+                                    .params = METHOD_PARAMS(list_params),
                                     .result = "{scenes: [{name, frame, time, playing, version}]}",
                                     .errors = auth_errors,
                                     .handler = scene_list};
 const method_t method_scene_create = {
     .name = "scene.create",
     .summary = "Creates a named scene, with its own state and clock, from a preset or defaults.",
-    .params = OBJ(create_params),
+    .params = METHOD_PARAMS(create_params),
     .result = "{name}",
     .errors = create_errors,
     .handler = scene_create_m};
 const method_t method_scene_delete = {.name = "scene.delete",
                                       .summary = "Deletes a scene; its subscriptions end.",
-                                      .params = OBJ(delete_params),
+                                      .params = METHOD_PARAMS(delete_params),
                                       .result = "{deleted}",
                                       .errors = scene_errors,
                                       .handler = scene_delete_m};
 const method_t method_scene_get = {.name = "scene.get",
                                    .summary =
                                        "The scene document, or the sub-tree at a dotted path.",
-                                   .params = OBJ(get_params),
+                                   .params = METHOD_PARAMS(get_params),
                                    .result = "The document or the value at 'path'.",
                                    .errors = scene_errors,
                                    .handler = scene_get_m};
@@ -497,14 +492,14 @@ const method_t method_scene_set = {
     .name = "scene.set",
     .summary = "Applies a merge patch or sets one path; validated as a whole, applied "
                "atomically; errors name the offending path.",
-    .params = OBJ(set_params),
+    .params = METHOD_PARAMS(set_params),
     .result = "{version}",
     .errors = set_errors,
     .handler = scene_set_m};
 const method_t method_sim_step = {.name = "sim.step",
                                   .summary = "Advances the scene's simulations by 'steps' steps, "
                                              "in slices that other scenes' renders run between.",
-                                  .params = OBJ(step_params),
+                                  .params = METHOD_PARAMS(step_params),
                                   .result = "{time, frame, cut_short?}: the clock where the "
                                             "stepping ended, and why when it ended early",
                                   .errors = step_errors,
@@ -512,13 +507,13 @@ const method_t method_sim_step = {.name = "sim.step",
 const method_t method_sim_play = {
     .name = "sim.play",
     .summary = "Runs the simulation freely inside the server at 'rate' steps per second.",
-    .params = OBJ(play_params),
+    .params = METHOD_PARAMS(play_params),
     .result = "{playing, rate, time, frame}",
     .errors = scene_errors,
     .handler = sim_play};
 const method_t method_sim_pause = {.name = "sim.pause",
                                    .summary = "Stops the free-running simulation.",
-                                   .params = OBJ(pause_params),
+                                   .params = METHOD_PARAMS(pause_params),
                                    .result = "{playing, time, frame}",
                                    .errors = scene_errors,
                                    .handler = sim_pause};
