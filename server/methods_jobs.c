@@ -31,11 +31,9 @@
 #include <string.h>
 #include <sys/stat.h>
 
-#include "cloud.h"
 #include "datapath.h"
 #include "dispatch.h"
 #include "files.h"
-#include "fluid.h"
 #include "frames.h"
 #include "jobs.h"
 #include "log.h"

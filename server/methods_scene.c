@@ -7,12 +7,12 @@
 #include <stdlib.h>
 #include <string.h>
 
-#include "cloud.h"
 #include "defer.h"
 #include "dispatch.h"
-#include "fluid.h"
 #include "frames.h"
 #include "log.h"
+#include "play.h"
+#include "step_cloud.h"
 #include "stepper.h"
 #include "worker.h"
 
@@ -105,9 +105,6 @@ static void scene_get_m(call_t *call) {
   }
   call_result(call, v);
 }
-
-static void play_start(scene_entry_t *e, double rate);
-static int play_stop(scene_entry_t *e, stepper_cb cb, void *ctx);
 
 static void scene_set_m(call_t *call) {
   scene_entry_t *e = call_scene(call);
@@ -237,74 +234,6 @@ static void sim_step(call_t *call) {
                proto_err_message(PROTO_E_BUSY));
   else if (rc == 0)
     call_hold(call);
-}
-
-/* Owes 'n' clock steps to the simulations of 'e' and, for each with no job running, submits
- * one slice of what it owes (the next tick takes more). */
-static void play_steps(scene_entry_t *e, uint64_t n) {
-  uint64_t slice = stepper_slice_steps(e);
-  if (fluid_wants_step(e)) {
-    fluid_owe_steps(e, n);
-    if (!fluid_busy(e))
-      fluid_submit_step(e->srv, e, slice, scene_dt(e->scene), NULL);
-  }
-  if (cloud_wants_step(e)) {
-    cloud_owe_steps(e, n);
-    if (!cloud_busy(e))
-      cloud_submit_step(e->srv, e, slice, NULL);
-  }
-}
-
-/* The play timer: takes the steps that wall time owes since play started. */
-static void on_play(uv_timer_t *t) {
-  scene_entry_t *e = t->data;
-  double elapsed = (double)(now_ns() - e->play_start_ns) / 1e9;
-  uint64_t due = (uint64_t)floor(elapsed * e->rate);
-  if (due > e->play_steps) {
-    uint64_t n = due - e->play_steps;
-    /* After a long stall, do not try to catch up more than a second's worth. */
-    if (n > (uint64_t)ceil(e->rate))
-      n = (uint64_t)ceil(e->rate);
-    scene_advance(e->scene, n, scene_dt(e->scene));
-    e->play_steps = due;
-    /* One job at a time per scene and simulation: while one runs, these steps are owed, and
-     * the next job takes them first, so the state at a frame does not depend on the timing. */
-    play_steps(e, n);
-  }
-}
-
-static void set_playing(scene_entry_t *e, int playing) {
-  cJSON *patch = cJSON_CreateObject();
-  cJSON *sim = cJSON_AddObjectToObject(patch, "sim");
-  cJSON_AddBoolToObject(sim, "playing", playing);
-  scene_error_t err;
-  scene_patch(e->scene, patch, &err);
-  cJSON_Delete(patch);
-}
-
-static void play_start(scene_entry_t *e, double rate) {
-  e->rate = rate;
-  e->play_start_ns = now_ns();
-  e->play_steps = 0;
-  /* Tick at the step rate up to 200 Hz; faster rates take several steps per tick. */
-  double hz = e->rate < 200 ? e->rate : 200;
-  uint64_t ms = (uint64_t)(1000.0 / hz);
-  uv_timer_start(&e->play, on_play, ms ? ms : 1, ms ? ms : 1);
-  set_playing(e, 1);
-}
-
-/*
- * Stops playing, and any stepping of the scene begun before (each sim.step's after its slice
- * in flight, answered with the clock it reached). The steps the fluid and the cloud still owe
- * the clock are then taken, in slices; 'cb' (may be NULL) gets 'ctx' when they are. Returns
- * as stepper_start.
- */
-static int play_stop(scene_entry_t *e, stepper_cb cb, void *ctx) {
-  uv_timer_stop(&e->play);
-  e->rate = 0;
-  set_playing(e, 0);
-  stepper_stop_scene(e);
-  return stepper_start(e->srv, e, 0, scene_dt(e->scene), cb, ctx, NULL);
 }
 
 static void sim_play(call_t *call) {

@@ -15,7 +15,7 @@
 #include "sim_cloud.h"
 
 /*
- * The outcome of one cloud job (methods_cloud.c), shared by the job and the scene: a job queued
+ * The outcome of one cloud job (step_cloud.c), shared by the job and the scene: a job queued
  * behind another of the same scene starts from the cells and density its predecessor left
  * here, since the scene has not seen them yet when it is submitted. Filled on the worker
  * before the job is answered, read only after that.

@@ -11,12 +11,12 @@
 #include <string.h>
 #include <unistd.h>
 
-#include "fluid.h"
 #include "files.h"
 #include "frames.h"
 #include "jobs.h"
 #include "log.h"
 #include "server.h"
+#include "step_fluid.h"
 #include "worker.h"
 
 uint64_t now_ns(void) {

@@ -103,7 +103,7 @@ struct call {
   int holding;              /* call_hold: the connection waits for this call's answer. */
 };
 
-/* A scene held by the server, with its free-running simulation timer. */
+/* A scene held by the server, with its free-running simulation timer (play.c). */
 typedef struct scene_entry {
   struct scene_entry *next;
   server_t *srv;
@@ -113,8 +113,8 @@ typedef struct scene_entry {
   uint64_t play_start_ns;
   uint64_t play_steps; /* Steps taken since play_start_ns. */
   int closing;
-  struct fluid_host *fluid; /* The fluid's simulation state (methods_fluid.c); NULL for none. */
-  uint64_t cloud_owed;      /* Steps the clock took that no cloud job has (methods_cloud.c). */
+  struct fluid_host *fluid; /* The fluid's simulation state (step_fluid.c); NULL for none. */
+  uint64_t cloud_owed;      /* Steps the clock took that no cloud job has (step_cloud.c). */
   uint64_t cloud_owed_gen;  /* The scene's cloud_gen 'cloud_owed' belongs to. */
 } scene_entry_t;
 

@@ -22,8 +22,8 @@
 #include <stdlib.h>
 #include <string.h>
 
-#include "cloud.h"
-#include "fluid.h"
+#include "step_cloud.h"
+#include "step_fluid.h"
 #include "worker.h"
 
 struct stepper {

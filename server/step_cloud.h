@@ -1,10 +1,11 @@
 /*
- * The server side of the cloud (methods_cloud.c): automaton steps and density passes run as
- * jobs on the render worker, in order with the renders. Every function here runs on the loop
- * thread.
+ * The cloud's stepping (step_cloud.c): automaton steps and density passes run as jobs on the
+ * render worker, in order with the renders, and the steps the cloud owes the clock. The
+ * methods (methods_cloud.c, methods_scene.c), the clock (play.c, stepper.c) and the jobs call
+ * these. Every function here runs on the loop thread.
  */
-#ifndef VOLFX_CLOUD_H
-#define VOLFX_CLOUD_H
+#ifndef VOLFX_STEP_CLOUD_H
+#define VOLFX_STEP_CLOUD_H
 
 #include "server.h"
 #include "stepper.h"
@@ -37,5 +38,14 @@ uint64_t cloud_owed(const scene_entry_t *e);
  * scene's version at submission. Returns 0, or -1 as cloud_submit_step.
  */
 int cloud_submit_density(server_t *srv, scene_entry_t *e, call_t *call);
+/*
+ * Makes 'cells' (taken in every case) the cells of the cloud of 'e' and queues a job computing
+ * their density anew, unsmoothed, ahead of no earlier cloud job; 'call' is answered when it is
+ * done with {field, cells}, 'field' (a static string) naming the field that was set. Returns
+ * 0, PROTO_E_BUSY when the worker's queue is full or PROTO_E_INTERNAL when out of memory (the
+ * scene unchanged in both).
+ */
+int cloud_submit_cells(server_t *srv, scene_entry_t *e, cloud_cells_t *cells, const char *field,
+                       call_t *call);
 
 #endif

@@ -1,11 +1,14 @@
 /*
- * The server side of the particle fluid (methods_fluid.c): per-scene simulations stepped on
- * the render worker. Every function here runs on the loop thread.
+ * The fluid's stepping (step_fluid.c): per-scene particle simulations stepped on the render
+ * worker, and the steps each owes the clock. The methods (methods_fluid.c), the clock
+ * (play.c, stepper.c) and the server's life cycle call these. Every function here runs on the
+ * loop thread.
  */
-#ifndef VOLFX_FLUID_H
-#define VOLFX_FLUID_H
+#ifndef VOLFX_STEP_FLUID_H
+#define VOLFX_STEP_FLUID_H
 
 #include "server.h"
+#include "sim_fluid.h"
 #include "stepper.h"
 
 /* Whether a step of 'e' must step its fluid: fluid.enabled and particles to move. */
@@ -29,6 +32,8 @@ int64_t fluid_submit_step(server_t *srv, scene_entry_t *e, uint64_t max, double 
 void fluid_owe_steps(scene_entry_t *e, uint64_t steps);
 /* The steps the fluid of 'e' owes the clock. */
 uint64_t fluid_owed(const scene_entry_t *e);
+/* The simulation parameters of a scene's validated document 'doc', emitters included. */
+void fluid_params_of(const cJSON *doc, fluid_params_t *p);
 /* Detaches the fluid of a scene being removed and has the worker free its simulation. */
 void fluid_scene_removed(server_t *srv, scene_entry_t *e);
 
