@@ -58,7 +58,7 @@ static void on_timer_closed(uv_handle_t *h) {
 static void drop_waiting(sub_t *sub) {
   if (!sub->wait_line)
     return;
-  server_output(sub->srv, -(long long)(sub->wait_len + sub->wait_att_len));
+  output_total_add(sub->srv, -(long long)(sub->wait_len + sub->wait_att_len));
   free(sub->wait_line);
   free(sub->wait_att);
   sub->wait_line = NULL;
@@ -88,7 +88,8 @@ static void unlink_sub(conn_t *c, sub_t *sub) {
     }
 }
 
-void frames_conn_closed(conn_t *c) {
+/* The connection closes: its subscriptions end, silently. Safe to call more than once. */
+static void conn_closed(conn_t *c) {
   sub_t *sub = c->subs;
   c->subs = NULL;
   while (sub) {
@@ -106,14 +107,42 @@ static void send_frame(sub_t *sub) {
   sub->wait_att = NULL;
   sub->sent++;
   /* The bytes move from the waiting frame to the connection's output. */
-  server_output(sub->srv, -(long long)(sub->wait_len + sub->wait_att_len));
+  output_total_add(sub->srv, -(long long)(sub->wait_len + sub->wait_att_len));
   conn_write(c, line, sub->wait_len, att, sub->wait_att_len);
 }
 
-void frames_conn_drained(conn_t *c) {
+/* The connection's socket has no queued output: writes the frames waiting. */
+static void conn_drained(conn_t *c) {
   for (sub_t *sub = c->subs; sub && !c->closing; sub = sub->next)
     if (sub->wait_line && uv_stream_get_write_queue_size(c->stream) == 0)
       send_frame(sub);
+}
+
+/* Ends 'sub' of 'c' (unlinked by the caller) with a last 'frames.ended' notification giving
+ * 'reason'. */
+static void end_with_notice(conn_t *c, sub_t *sub, const char *reason) {
+  cJSON *params = cJSON_CreateObject();
+  cJSON_AddNumberToObject(params, "id", (double)sub->id);
+  cJSON_AddStringToObject(params, "reason", reason);
+  cJSON *n = proto_make_notification("frames.ended", params);
+  size_t len;
+  char *line = proto_print_line(n, &len);
+  cJSON_Delete(n);
+  if (line)
+    conn_write(c, line, len, NULL, 0);
+  sub_end(sub);
+}
+
+/* The server is stopping: every subscription of the connection ends with 'frames.ended'
+ * (reason "shutdown"), written before the connection closes. */
+static void conn_stopping(conn_t *c) {
+  sub_t *sub = c->subs;
+  c->subs = NULL;
+  while (sub) {
+    sub_t *next = sub->next;
+    end_with_notice(c, sub, "shutdown");
+    sub = next;
+  }
 }
 
 void frames_scene_deleted(server_t *s, const char *scene) {
@@ -126,16 +155,7 @@ void frames_scene_deleted(server_t *s, const char *scene) {
         continue;
       }
       *p = sub->next;
-      cJSON *params = cJSON_CreateObject();
-      cJSON_AddNumberToObject(params, "id", (double)sub->id);
-      cJSON_AddStringToObject(params, "reason", "scene deleted");
-      cJSON *n = proto_make_notification("frames.ended", params);
-      size_t len;
-      char *line = proto_print_line(n, &len);
-      cJSON_Delete(n);
-      if (line)
-        conn_write(c, line, len, NULL, 0);
-      sub_end(sub);
+      end_with_notice(c, sub, "scene deleted");
     }
   }
 }
@@ -145,7 +165,7 @@ static void on_frame_done(job_t *j) {
   server_t *s = sub->srv;
   render_job_stats(s, j);
   sub->in_flight--;
-  server_output(s, -(long long)sub->frame_bound);
+  output_total_add(s, -(long long)sub->frame_bound);
   if (!sub->conn || sub->conn->closing || j->code != 0) {
     if (j->code != 0 && sub->conn)
       LOG(LOG_WARN, "frames", "subscription %llu: frame failed: %s", (unsigned long long)sub->id,
@@ -205,7 +225,7 @@ static void on_frame_done(job_t *j) {
   sub->wait_len = len;
   sub->wait_att = bytes;
   sub->wait_att_len = nbytes;
-  server_output(s, (long long)(len + nbytes));
+  output_total_add(s, (long long)(len + nbytes));
   if (uv_stream_get_write_queue_size(sub->conn->stream) == 0)
     send_frame(sub);
   sub_unref(sub);
@@ -239,7 +259,7 @@ static void on_tick(uv_timer_t *t) {
   j->done = on_frame_done;
   j->ctx = sub;
   sub->frame_bound = render_answer_bound(j, sub->base64);
-  if (s->output_total + sub->frame_bound > s->cfg.budget.output_total_bytes) {
+  if (!output_total_fits(s, sub->frame_bound)) {
     render_scene_unref(j->scene);
     free(j);
     sub->dropped++; /* The server's output budget is spent: this frame is skipped. */
@@ -251,7 +271,7 @@ static void on_tick(uv_timer_t *t) {
     sub->dropped++; /* The render queue is full: this frame is skipped. */
     return;
   }
-  server_output(s, (long long)sub->frame_bound);
+  output_total_add(s, (long long)sub->frame_bound);
   sub->in_flight++;
   sub->refs++;
 }
@@ -366,3 +386,10 @@ const method_t method_frames_unsubscribe = {.name = "frames.unsubscribe",
                                             .result = "{id, sent, dropped}",
                                             .errors = unsubscribe_errors,
                                             .handler = unsubscribe};
+
+static const conn_hooks_t frames_hooks = {
+    .name = "frames", .on_close = conn_closed, .on_drain = conn_drained, .on_stop = conn_stopping};
+
+void frames_register(server_t *s) {
+  conn_hooks_add(s, &frames_hooks);
+}

@@ -14,10 +14,10 @@
 
 #define FRAMES_MAX_PER_CONN 16
 
-/* The connection closed: ends its subscriptions. Safe to call more than once. */
-void frames_conn_closed(conn_t *c);
-/* The connection's socket has no queued output: writes waiting frames. */
-void frames_conn_drained(conn_t *c);
+/* Adds the subscriptions' connection hooks to 's' (at start-up): a closing connection's
+ * subscriptions end, a drained one gets the frames waiting, and a server stopping ends each
+ * with a 'frames.ended' notification, reason "shutdown". */
+void frames_register(server_t *s);
 /* The scene was deleted: ends its subscriptions with a 'frames.ended' notification. */
 void frames_scene_deleted(server_t *s, const char *scene);
 

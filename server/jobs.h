@@ -12,8 +12,9 @@
 
 /* Jobs running now. */
 int jobs_running(const server_t *s);
-/* The connection closed: its jobs run on, without progress notifications. */
-void jobs_conn_closed(conn_t *c);
+/* Adds the jobs' connection hooks to 's' (at start-up): a job whose connection closes runs
+ * on, without progress notifications. */
+void jobs_register(server_t *s);
 /* The server is stopping: every running job fails and none starts more work. Call before the
  * worker stops, so that the jobs it cancels find theirs ended. */
 void jobs_server_stopping(server_t *s);

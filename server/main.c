@@ -235,6 +235,7 @@ int main(int argc, char **argv) {
   }
 
   int exit_code = 0;
+  server_features_register(s);
   if (net_listen(s) != 0) {
     exit_code = 1;
     server_request_stop(s);

@@ -805,10 +805,17 @@ int jobs_running(const server_t *s) {
   return running_jobs(s, NULL);
 }
 
-void jobs_conn_closed(conn_t *c) {
+/* The connection closed: its jobs run on, without progress notifications. */
+static void conn_closed(conn_t *c) {
   for (seq_job_t *job = c->srv->jobs; job; job = job->next)
     if (job->conn == c)
       job->conn = NULL;
+}
+
+static const conn_hooks_t jobs_hooks = {.name = "jobs", .on_close = conn_closed};
+
+void jobs_register(server_t *s) {
+  conn_hooks_add(s, &jobs_hooks);
 }
 
 void jobs_server_stopping(server_t *s) {

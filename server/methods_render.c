@@ -150,10 +150,9 @@ static void on_render_done(job_t *j) {
   render_call_t *rc = j->ctx;
   call_t *call = rc->call;
   server_t *s = call->srv;
-  call->conn->renders--;
   /* A connection that waited for its share of the render queue goes on (the rest of a batch
    * may be waiting for this; a single line's answer resumes it when written anyway). */
-  conn_resume(call->conn);
+  conn_render_done(call->conn);
   render_job_stats(s, j);
   if (j->code != 0) {
     call_error(call, j->code, j->code == PROTO_E_INVALID_PARAMS ? "format" : NULL, "%s: %s",
@@ -222,7 +221,7 @@ static void render_m(call_t *call) {
   rc->job.ctx = rc;
   size_t bound = render_answer_bound(&rc->job, rc->base64);
   server_t *s = call->srv;
-  if (s->output_total > 0 && s->output_total + bound > s->cfg.budget.output_total_bytes) {
+  if (output_total(s) > 0 && !output_total_fits(s, bound)) {
     /* The frame would pass the server's output budget: refused rather than held. */
     render_scene_unref(rc->job.scene);
     cJSON_Delete(rc->t);
@@ -230,7 +229,7 @@ static void render_m(call_t *call) {
     call_error(call, PROTO_E_LIMIT, NULL,
                "limit exceeded: the server's unsent output (%zu bytes) and this frame (up to "
                "%zu) would pass limits.output_total_bytes (%zu); retry once clients have read",
-               s->output_total, bound, s->cfg.budget.output_total_bytes);
+               output_total(s), bound, s->cfg.budget.output_total_bytes);
     return;
   }
   if (worker_submit(call->srv->worker, &rc->job) != 0) {
@@ -242,7 +241,7 @@ static void render_m(call_t *call) {
     return;
   }
   conn_promise(call, bound);
-  call->conn->renders++;
+  conn_render_queued(call->conn);
 }
 
 static const sch_field_t render_params[] = {

@@ -67,9 +67,6 @@ static void auth(call_t *call) {
 static void stats(call_t *call) {
   server_t *s = call->srv;
   uint64_t now = now_ns();
-  size_t queued = 0;
-  for (conn_t *c = s->conns; c; c = c->next)
-    queued += c->out_bytes;
   cJSON *r = cJSON_CreateObject();
   cJSON_AddNumberToObject(r, "uptime_s", (double)(now - s->stats.started_ns) / 1e9);
   cJSON_AddNumberToObject(r, "connections", s->nconns);
@@ -84,8 +81,8 @@ static void stats(call_t *call) {
   cJSON_AddItemToObject(r, "passes", stats_passes_json(&s->stats));
   cJSON *mem = cJSON_AddObjectToObject(r, "memory");
   cJSON_AddNumberToObject(mem, "rss_bytes", (double)stats_rss_bytes());
-  cJSON_AddNumberToObject(mem, "output_queued_bytes", (double)queued);
-  cJSON_AddNumberToObject(mem, "output_total_bytes", (double)s->output_total);
+  cJSON_AddNumberToObject(mem, "output_queued_bytes", (double)output_queued_bytes(s));
+  cJSON_AddNumberToObject(mem, "output_total_bytes", (double)output_total(s));
   cJSON_AddNumberToObject(mem, "scene_bytes", (double)scene_sim_bytes_total());
   cJSON_AddNumberToObject(r, "unauthenticated", s->nunauth);
   cJSON_AddNumberToObject(mem, "kept_bytes", (double)reclaim_kept_bytes());

@@ -4,20 +4,16 @@
  * timeout, the output limit, and closing. A connection is freed only when its handles are
  * closed and no call or subscription still points at it ('refs').
  *
- * The output limit (limits.output_bytes) is backpressure, not a cut-off: while a connection's
- * unsent output and the answers its queued renders will write pass it, no further request is
- * read from it, so a client that pipelines is slowed to the pace it reads at, and one answer
- * larger than the limit (a 4096² float frame) still goes out whole. Only a connection whose
- * output stays over the limit with nothing taken off the socket for OUT_STALL_MS is closed,
- * as not reading.
+ * While a connection is full (conn_full, output.c: its output or its renders over their
+ * limits, or the server's output budget spent) no further request is read from it; only a
+ * connection whose output stays unsent with nothing taken off the socket for OUT_STALL_MS is
+ * closed, as not reading. Before authentication (on a server with a token) a connection runs no
+ * batch, it is closed after budget.auth_timeout_s, after budget.auth_failures wrong tokens (each
+ * answered after AUTH_DELAY_MS), and at most budget.unauthenticated of them are open at once.
  *
- * Over all connections, the unsent output, the answers promised and the subscriptions' frames
- * count towards budget.output_total_bytes (server_output): once it is spent, a connection that
- * has output pending runs no further request until the total is back under it, so the clients
- * that wait for nothing go on. Before authentication (on a server with a token) a connection
- * may hold little: its answers are errors and the auth result, it runs no batch, it is closed
- * after budget.auth_timeout_s, after budget.auth_failures wrong tokens (each answered after
- * AUTH_DELAY_MS), and at most budget.unauthenticated of them are open at once.
+ * The transport names no feature: what hangs off a connection (subscriptions, jobs) registers
+ * hooks (conn_hooks_add) that run when it closes, when its socket drains and when the server
+ * stops.
  */
 #include <errno.h>
 #include <stdio.h>
@@ -29,8 +25,6 @@
 #include <unistd.h>
 
 #include "dispatch.h"
-#include "frames.h"
-#include "jobs.h"
 #include "log.h"
 #include "server.h"
 
@@ -38,8 +32,6 @@
  * and how often that is looked at. */
 #define OUT_STALL_MS 10000
 #define STALL_CHECK_MS 1000
-/* The most output an unauthenticated connection may have unsent (its answers are errors). */
-#define UNAUTH_OUTPUT_BYTES 65536
 /* How long the answer to a wrong token is held back. */
 #define AUTH_DELAY_MS 100
 
@@ -53,6 +45,25 @@ typedef struct write_req {
 } write_req_t;
 
 static void conn_output_changed(conn_t *c, int progress);
+
+int conn_hooks_add(server_t *s, const conn_hooks_t *h) {
+  if (s->nconn_hooks >= CONN_HOOKS_MAX) {
+    LOG(LOG_ERROR, "net", "no room for the connection hooks of %s (%d at most)", h->name,
+        CONN_HOOKS_MAX);
+    return -1;
+  }
+  s->conn_hooks[s->nconn_hooks++] = h;
+  return 0;
+}
+
+/* Runs the hook 'member' (on_close, on_drain or on_stop) of every conn_hooks_t added, in the
+ * order they were added, for 'c'. */
+#define RUN_HOOKS(c, member)                                                                       \
+  do {                                                                                             \
+    for (unsigned i_ = 0; i_ < (c)->srv->nconn_hooks; i_++)                                        \
+      if ((c)->srv->conn_hooks[i_]->member)                                                        \
+        (c)->srv->conn_hooks[i_]->member(c);                                                       \
+  } while (0)
 
 static void free_reply(reply_t *r) {
   for (int i = 0; i < r->nparts; i++) {
@@ -71,24 +82,10 @@ void conn_unref(conn_t *c) {
   while (c->head) {
     reply_t *r = c->head;
     c->head = r->next;
-    server_output(c->srv, -(long long)r->promised);
+    conn_promise_settle(c, r);
     free_reply(r);
   }
   free(c);
-}
-
-void server_output(server_t *s, long long delta) {
-  size_t budget = s->cfg.budget.output_total_bytes;
-  int was_over = s->output_total > budget;
-  s->output_total += (size_t)delta;
-  if (!was_over || s->output_total > budget)
-    return;
-  /* Back under the budget: connections paused by it may go on. */
-  for (conn_t *c = s->conns, *next; c; c = next) {
-    next = c->next;
-    if (c->out_paused && !c->closing)
-      conn_output_changed(c, 0);
-  }
 }
 
 static void on_handle_closed(uv_handle_t *h) {
@@ -108,8 +105,7 @@ void conn_close(conn_t *c) {
   if (c->unauth_counted && !c->authed)
     s->nunauth--;
   c->unauth_counted = 0;
-  frames_conn_closed(c);
-  jobs_conn_closed(c);
+  RUN_HOOKS(c, on_close);
   if (c->prev)
     c->prev->next = c->next;
   else
@@ -131,14 +127,6 @@ void conn_finish(conn_t *c) {
   c->draining = 1;
   if (!c->head && c->out_bytes == 0)
     conn_close(c);
-}
-
-int conn_full(const conn_t *c) {
-  const server_t *s = c->srv;
-  size_t own = c->out_bytes + c->promised;
-  size_t limit = c->authed ? s->cfg.limits.output_bytes : UNAUTH_OUTPUT_BYTES;
-  return own > limit || c->renders >= CONN_RENDERS_MAX ||
-         (own > 0 && s->output_total > s->cfg.budget.output_total_bytes);
 }
 
 static void pump(conn_t *c);
@@ -193,17 +181,11 @@ void conn_resume(conn_t *c) {
   conn_output_changed(c, 0);
 }
 
-void conn_promise(call_t *call, size_t bytes) {
-  call->reply->promised += bytes;
-  call->conn->promised += bytes;
-  server_output(call->srv, (long long)bytes);
-}
-
 static void on_write(uv_write_t *req, int status) {
   write_req_t *w = (write_req_t *)req;
   conn_t *c = w->conn;
   size_t total = w->total;
-  c->out_bytes -= total;
+  conn_output_written(c, total);
   free(w->line);
   for (int i = 0; i < w->natt; i++)
     free(w->att[i]);
@@ -215,14 +197,16 @@ static void on_write(uv_write_t *req, int status) {
       conn_close(c);
     } else {
       if (uv_stream_get_write_queue_size(c->stream) == 0) {
-        frames_conn_drained(c);
+        RUN_HOOKS(c, on_drain);
         if (c->draining && !c->head && c->out_bytes == 0)
           conn_close(c);
       }
       conn_output_changed(c, 1);
     }
   }
-  server_output(c->srv, -(long long)total);
+  /* The server's total drops last, so that connections its budget paused go on after this
+   * one has reacted to its own write. */
+  output_total_add(c->srv, -(long long)total);
   conn_unref(c);
 }
 
@@ -255,15 +239,14 @@ static void write_buffers(conn_t *c, char *line, size_t len, unsigned char **att
     bufs[w->natt] = uv_buf_init((char *)atts[i], (unsigned)lens[i]);
     w->total += lens[i];
   }
-  c->out_bytes += w->total;
-  server_output(c->srv, (long long)w->total);
+  conn_output_queued(c, w->total);
   c->refs++;
   int rc = uv_write(&w->req, c->stream, bufs, (unsigned)w->natt + 1, on_write);
   if (bufs != stack)
     free(bufs);
   if (rc < 0) {
-    c->out_bytes -= w->total;
-    server_output(c->srv, -(long long)w->total);
+    conn_output_written(c, w->total);
+    output_total_add(c->srv, -(long long)w->total);
     c->refs--;
     free(line);
     for (int i = 0; i < w->natt; i++)
@@ -340,9 +323,7 @@ static void write_reply(conn_t *c, reply_t *r) {
   size_t len = 0;
   int empty;
   char *line = reply_line(r, &len, &empty);
-  c->promised -= r->promised;
-  server_output(c->srv, -(long long)r->promised);
-  r->promised = 0;
+  conn_promise_settle(c, r);
   if (empty) {
     free_reply(r);
     return;
@@ -761,9 +742,10 @@ void net_stop(server_t *s) {
   while (c) {
     conn_t *next = c->next;
     uv_read_stop(c->stream);
-    frames_conn_closed(c);
+    /* Draining first, so that what the hooks write does not start the reading again. */
     c->draining = 1;
-    if (!c->head && c->out_bytes == 0)
+    RUN_HOOKS(c, on_stop);
+    if (!c->closing && !c->head && c->out_bytes == 0)
       conn_close(c);
     c = next;
   }

@@ -205,6 +205,11 @@ static void do_stop(uv_idle_t *idle) {
   uv_unref((uv_handle_t *)&s->stop_timer);
 }
 
+void server_features_register(server_t *s) {
+  frames_register(s);
+  jobs_register(s);
+}
+
 void server_request_stop(server_t *s) {
   if (s->stopping)
     return;

@@ -49,6 +49,23 @@ struct reply {
   reply_part_t parts[];
 };
 
+/*
+ * What a feature does with the connections it hangs state off (subscriptions, jobs): each such
+ * feature adds one table at start-up (conn_hooks_add), and the transport (net.c) runs every
+ * table's hooks without naming a feature. A NULL hook is nothing to do.
+ */
+typedef struct conn_hooks {
+  const char *name;            /* The feature, for the log. */
+  void (*on_close)(conn_t *c); /* The connection is closing: let go of it (nothing more is
+                                  written to it). */
+  void (*on_drain)(conn_t *c); /* Its socket's write queue is empty: write what waits. */
+  void (*on_stop)(conn_t *c);  /* The server is stopping: end what hangs off the connection,
+                                  telling the client; it closes once that is written. */
+} conn_hooks_t;
+
+/* Hook tables a server holds at most. */
+#define CONN_HOOKS_MAX 8
+
 struct conn {
   union {
     uv_tcp_t tcp;
@@ -63,14 +80,14 @@ struct conn {
   uint64_t id;
   proto_reader_t reader;
   reply_t *head, *tail; /* Replies not yet written. */
-  size_t out_bytes;     /* Bytes handed to libuv and not yet written to the socket. */
-  size_t promised;      /* Bytes of answers queued (render jobs) and not yet handed to libuv. */
-  int out_paused;       /* Reading stopped: out_bytes + promised over the limit, or 'renders'
-                           at CONN_RENDERS_MAX. */
-  int renders;          /* Its render requests queued or running on the worker. */
-  int refs;             /* Open handles + calls in flight + subscriptions. */
-  int closing;          /* No further reads; writes are dropped. */
-  int draining;         /* Close once every reply is written (shutdown, oversize line). */
+  /* The back-pressure counters, changed only by output.c's functions: */
+  size_t out_bytes; /* Bytes handed to libuv and not yet written to the socket. */
+  size_t promised;  /* Bytes of answers queued (render jobs) and not yet handed to libuv. */
+  int renders;      /* Its render requests queued or running on the worker. */
+  int out_paused;   /* Reading stopped because the connection was full (conn_full). */
+  int refs;         /* Open handles + calls in flight + subscriptions. */
+  int closing;      /* No further reads; writes are dropped. */
+  int draining;     /* Close once every reply is written (shutdown, oversize line). */
   int authed;
   int unauth_counted;      /* Counted in server_t.nunauth (a token server, not yet authed). */
   uint32_t auth_failures;  /* Wrong tokens so far. */
@@ -140,7 +157,9 @@ struct server {
   unsigned nsubs;
   unsigned nunauth;    /* Connections that have not authenticated yet (token servers). */
   size_t output_total; /* Unsent output, answers promised and subscription frames, all
-                          connections (budget.output_total_bytes). */
+                          connections (budget.output_total_bytes); output.c's alone. */
+  const conn_hooks_t *conn_hooks[CONN_HOOKS_MAX]; /* Run by net.c (conn_hooks_add). */
+  unsigned nconn_hooks;
   stats_t stats;
   int stopping;
 };
@@ -151,16 +170,15 @@ struct server {
 
 /* net.c */
 int net_listen(server_t *s);
+/* Adds a feature's hooks, run for every connection from now on (at start-up, before
+ * net_listen). Returns 0, or -1 (logged) when CONN_HOOKS_MAX tables are held. */
+int conn_hooks_add(server_t *s, const conn_hooks_t *h);
 /* Queues 'line' (and 'att', if any) for writing; takes ownership of both (free()). */
 void conn_write(conn_t *c, char *line, size_t len, unsigned char *att, size_t att_len);
 /* Closes a connection at once, dropping unwritten output. */
 void conn_close(conn_t *c);
 /* Stops reading and closes the connection once every reply is written. */
 void conn_finish(conn_t *c);
-/* Whether the connection may not run a further request now: its output or its renders are
- * at their limits, or the server's output budget is spent and the connection has output
- * pending. */
-int conn_full(const conn_t *c);
 /* Runs what the connection waits to run (lines, the rest of a batch) if it is no longer full. */
 void conn_resume(conn_t *c);
 /* Marks the connection authenticated: the idle timeout counts from now. */
@@ -168,14 +186,8 @@ void conn_authenticated(conn_t *c);
 /* Answers the auth call 'call' with a wrong-token error after a short delay; closes the
  * connection after budget.auth_failures of them. */
 void conn_auth_failed(call_t *call);
-/* Adds 'delta' (negative to take back) to the server's output total; a drop below the budget
- * lets paused connections go on. */
-void server_output(server_t *s, long long delta);
 /* Writes every reply at the head of the queue that is complete. */
 void conn_flush_replies(conn_t *c);
-/* Counts 'bytes' that the work of 'call' will write towards its connection's output, so that
- * no further request is read while the output written and promised passes the limit. */
-void conn_promise(call_t *call, size_t bytes);
 void conn_unref(conn_t *c);
 /* Stops dispatching the connection's requests until a matching conn_release. */
 void conn_hold(conn_t *c);
@@ -183,6 +195,35 @@ void conn_hold(conn_t *c);
 void conn_release(conn_t *c);
 /* Stops accepting and reading; closes every connection once its replies are written. */
 void net_stop(server_t *s);
+
+/* output.c: the back-pressure counters. */
+/* Adds 'delta' (negative to take back) to the server's output total; a drop below the budget
+ * lets the connections it paused go on. */
+void output_total_add(server_t *s, long long delta);
+/* Whether 'bytes' more keep the server's output total within budget.output_total_bytes. */
+int output_total_fits(const server_t *s, size_t bytes);
+/* The server's output total: unsent output, answers promised, subscription frames. */
+size_t output_total(const server_t *s);
+/* The unsent output of every connection together. */
+size_t output_queued_bytes(const server_t *s);
+/* Whether the connection may not run a further request now: its output or its renders are
+ * at their limits, or the server's output budget is spent and the connection has output
+ * pending. */
+int conn_full(const conn_t *c);
+/* 'bytes' were handed to libuv for the connection: counted in its output and the total. */
+void conn_output_queued(conn_t *c, size_t bytes);
+/* 'bytes' of the connection's output were written (or dropped): they leave its count; the
+ * caller takes them from the total (output_total_add) once it has reacted to the write. */
+void conn_output_written(conn_t *c, size_t bytes);
+/* Counts 'bytes' that the work of 'call' will write towards its connection's output, so that
+ * no further request is read while the output written and promised passes the limit. */
+void conn_promise(call_t *call, size_t bytes);
+/* The reply 'r' of 'c' is written or dropped: what its work promised leaves the counts. */
+void conn_promise_settle(conn_t *c, reply_t *r);
+/* A render request of 'c' entered the shared render queue. */
+void conn_render_queued(conn_t *c);
+/* A render request of 'c' left the render queue: the connection goes on if it waited for that. */
+void conn_render_done(conn_t *c);
 
 /* dispatch.c */
 /* Handles one complete request line from 'c'. */
@@ -225,6 +266,9 @@ void server_remove_scene(server_t *s, scene_entry_t *e);
 /* Loads a preset by name (presets_dir/NAME.json); only the operator's --scene (s->cfg.scene
  * itself) may be a file path. NULL with 'err' set. */
 cJSON *server_load_preset(server_t *s, const char *name, scene_error_t *err);
+/* Adds the connection hooks of every feature that hangs state off connections (subscriptions,
+ * jobs); called once at start-up, before net_listen. */
+void server_features_register(server_t *s);
 /* Starts the graceful stop from any loop callback. */
 void server_request_stop(server_t *s);
 /* Monotonic nanoseconds. */
