@@ -221,10 +221,11 @@ class PytestPlugin(unittest.TestCase):
             self.skipTest("pytest is not installed")
         work = tempfile.mkdtemp(prefix="volfx-pytest-")
         self.addCleanup(shutil.rmtree, work, True)
+        with open(os.path.join(work, "conftest.py"), "w") as f:
+            f.write('pytest_plugins = ["volfx.pytest_plugin"]\n')
         with open(os.path.join(work, "test_it.py"), "w") as f:
             f.write(textwrap.dedent("""
                 import pytest
-                pytest_plugins = ["volfx.pytest_plugin"]
 
                 @pytest.mark.volfx_scene(preset="demo")
                 def test_steps(volfx_scene):

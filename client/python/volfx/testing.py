@@ -125,6 +125,11 @@ class Server:
             os.close(wfd)
             wfd = -1
             line = self._read_ready(rfd)
+        except BaseException:
+            # The error carries the log's tail; the files go.
+            self.kill()
+            self._remove_files()
+            raise
         finally:
             os.close(rfd)
             if wfd >= 0:
@@ -132,8 +137,10 @@ class Server:
         parts = line.split()
         if len(parts) != 3 or parts[0] != "ready":
             self.kill()
-            raise self._error("volfxd wrote %r to its ready descriptor, not 'ready PORT HOST'" %
+            err = self._error("volfxd wrote %r to its ready descriptor, not 'ready PORT HOST'" %
                               line)
+            self._remove_files()
+            raise err
         self.port, self.host = int(parts[1]), parts[2]
         return self
 
