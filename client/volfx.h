@@ -146,4 +146,51 @@ void volfx_attachment_free(volfx_attachment_t *att);
 /* The description of a VOLFX_E_* or JSON-RPC code; "unknown error" otherwise. */
 const char *volfx_strerror(int code);
 
+/*
+ * A private volfxd for a C or C++ test suite (libvolfx_server.c). volfx_server_start() runs
+ * volfxd on 127.0.0.1 port 0 with a temporary --data directory and a token, its stdout and
+ * stderr in a log file, and waits on --ready-fd until it listens. volfxd runs in its own
+ * process group and dies with the process that started it (PR_SET_PDEATHSIG), so a test that
+ * crashes leaves no server behind. volfx_server_stop() stops it with SIGTERM (SIGKILL after
+ * the stop timeout), removes its files and frees the handle.
+ */
+typedef struct volfx_server volfx_server_t;
+
+typedef struct volfx_server_opts {
+  const char *volfxd;      /* The executable; NULL: $VOLFX_VOLFXD, else "volfxd" on PATH. */
+  const char *const *args; /* More volfxd options, NULL-terminated; NULL for none. */
+  const char *token;       /* NULL: a random one. */
+  int start_timeout_ms;    /* How long to wait for readiness; 0 or less: 120000. */
+  int stop_timeout_ms;     /* How long SIGTERM may take before SIGKILL; 0 or less: 30000. */
+} volfx_server_opts_t;
+
+/*
+ * Starts volfxd as 'opts' (NULL: all defaults) says and waits until it listens. On success
+ * '*out' is the running server, owned by the caller until volfx_server_stop(). Returns 0,
+ * VOLFX_E_INVAL for bad options, VOLFX_E_IO when it cannot be started, VOLFX_E_CLOSED when it
+ * exited before it was ready, VOLFX_E_PROTOCOL for a ready line it cannot read, or
+ * VOLFX_E_TIMEOUT; 'err' then says why, quoting the log's last error line.
+ */
+int volfx_server_start(volfx_server_t **out, const volfx_server_opts_t *opts, volfx_error_t *err);
+
+/* Where it listens, its token, data directory, log file and process id; valid until stop. */
+int volfx_server_port(const volfx_server_t *srv);
+const char *volfx_server_host(const volfx_server_t *srv);
+const char *volfx_server_token(const volfx_server_t *srv);
+const char *volfx_server_data_dir(const volfx_server_t *srv);
+const char *volfx_server_log_path(const volfx_server_t *srv);
+int volfx_server_pid(const volfx_server_t *srv);
+
+/* Connects to 'srv' and authenticates with its token; returns as volfx_connect_tcp(). */
+int volfx_server_connect(volfx_server_t *srv, volfx_conn_t **out, int timeout_ms,
+                         volfx_error_t *err);
+
+/*
+ * Stops 'srv' (NULL is allowed), removes its temporary files unless 'keep_files', and frees
+ * it. '*exit_status' (may be NULL) receives volfxd's exit status, or 128 + the signal that
+ * ended it. Returns 0 when volfxd exited with status 0, VOLFX_E_TIMEOUT when it had to be
+ * killed, VOLFX_E_IO when it ended otherwise ('err' says how).
+ */
+int volfx_server_stop(volfx_server_t *srv, int keep_files, int *exit_status, volfx_error_t *err);
+
 #endif

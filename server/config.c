@@ -30,6 +30,8 @@ static const char usage[] =
     "  --config FILE        JSON config file (members named like these options)\n"
     "  --idle-timeout S     close connections idle this long (default 300; 0 never)\n"
     "  --max-connections N  connection limit (default 256)\n"
+    "  --port-file PATH     once listening, write 'PORT' and 'HOST' lines to PATH (atomically)\n"
+    "  --ready-fd N         once listening, write 'ready PORT HOST' to descriptor N, close it\n"
     "  --log-level L        debug, info, warn, error or quiet (default info)\n"
     "  --precompile         compile and warm every kernel into the kernel cache ($POCL_CACHE_DIR,\n"
     "                       else ~/.cache/volfx/pocl), then exit: for machine images\n"
@@ -103,6 +105,8 @@ enum {
   OPT_IDLE,
   OPT_MAXCONN,
   OPT_LOGLEVEL,
+  OPT_PORT_FILE,
+  OPT_READY_FD,
   OPT_PRECOMPILE,
   OPT_VERSION,
   OPT_HELP
@@ -122,6 +126,8 @@ static const struct option long_options[] = {
     {"idle-timeout", required_argument, 0, OPT_IDLE},
     {"max-connections", required_argument, 0, OPT_MAXCONN},
     {"log-level", required_argument, 0, OPT_LOGLEVEL},
+    {"port-file", required_argument, 0, OPT_PORT_FILE},
+    {"ready-fd", required_argument, 0, OPT_READY_FD},
     {"precompile", no_argument, 0, OPT_PRECOMPILE},
     {"version", no_argument, 0, OPT_VERSION},
     {"help", no_argument, 0, OPT_HELP},
@@ -154,6 +160,17 @@ static int apply_option(config_t *c, int opt, const char *arg) {
     return copy_str(c->scene, sizeof c->scene, arg, "--scene");
   case OPT_PRESETS:
     return copy_str(c->presets_dir, sizeof c->presets_dir, arg, "--presets");
+  case OPT_PORT_FILE:
+    return copy_str(c->port_file, sizeof c->port_file, arg, "--port-file");
+  case OPT_READY_FD:
+    if (parse_number(arg, 0, 1 << 20, "--ready-fd", &v))
+      return CONFIG_ERROR;
+    if (v != (int)v) {
+      fprintf(stderr, "volfxd: --ready-fd wants a descriptor number, got '%s'\n", arg);
+      return CONFIG_ERROR;
+    }
+    c->ready_fd = (int)v;
+    return CONFIG_OK;
   case OPT_IDLE:
     if (parse_number(arg, 0, 86400 * 365, "--idle-timeout", &v))
       return CONFIG_ERROR;
@@ -309,6 +326,7 @@ int config_load(config_t *c, int argc, char **argv) {
   c->log_level = LOG_INFO;
   c->idle_timeout_s = 300;
   c->render_queue = 64;
+  c->ready_fd = -1;
   proto_limits_default(&c->limits);
   c->budget = (budget_t){.output_total_bytes = (size_t)1 << 30,
                          .auth_timeout_s = 10,

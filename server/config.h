@@ -38,6 +38,8 @@ typedef struct config {
   int log_level;
   double idle_timeout_s; /* 0 disables the idle timeout. */
   int render_queue;      /* Most render jobs waiting; more get -32002. */
+  char port_file[1024];  /* Written with the bound port once listening; empty: none. */
+  int ready_fd;          /* Told "ready PORT HOST" once listening, then closed; -1: none. */
   proto_limits_t limits;
   budget_t budget;
 } config_t;

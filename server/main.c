@@ -1,7 +1,8 @@
 /*
  * volfxd: reads the configuration, brings up the OpenCL renderer (warming every kernel), the
  * render worker and the 'main' scene, listens, prints "volfxd listening on HOST:PORT" once
- * connections are accepted (and tells a service manager it is ready), and runs the libuv loop
+ * connections are accepted (and tells a service manager, the --port-file and the --ready-fd
+ * that it is ready), and runs the libuv loop
  * until SIGINT, SIGTERM or server.shutdown. SIGHUP re-reads the log level from the config file
  * and the command line; it never stops the server.
  */
@@ -13,6 +14,7 @@
 #include <sys/stat.h>
 
 #include "log.h"
+#include "ready.h"
 #include "reclaim.h"
 #include "scene_files.h"
 #include "seeding.h"
@@ -83,9 +85,11 @@ static void close_any(uv_handle_t *h, void *arg) {
 }
 
 /* Prints the address clients should use, with the port the kernel picked for port 0, and tells
- * the service manager that volfxd is ready. */
-static void announce(server_t *s) {
+ * the service manager, the port file and the ready descriptor that volfxd is ready. Returns 0,
+ * or -1 when the port file could not be written. */
+static int announce(server_t *s) {
   char where[320];
+  int rc;
   if (s->has_tcp) {
     struct sockaddr_storage addr;
     int len = sizeof addr;
@@ -100,13 +104,18 @@ static void announce(server_t *s) {
       port = ntohs(((struct sockaddr_in *)&addr)->sin_port);
     }
     snprintf(where, sizeof where, "%s:%d", host, port);
+    rc = ready_publish(host, port, NULL);
   } else {
     snprintf(where, sizeof where, "unix:%s", s->cfg.unix_path);
+    rc = ready_publish(NULL, 0, s->cfg.unix_path);
   }
+  if (rc != 0)
+    return -1;
   printf("volfxd listening on %s\n", where);
   fflush(stdout);
   snprintf(reload.status, sizeof reload.status, "serving on %s (%s)", where, s->device);
   service_ready(reload.status);
+  return 0;
 }
 
 /*
@@ -171,6 +180,11 @@ int main(int argc, char **argv) {
       free(real);
     }
   }
+  /* The port file's place and the ready descriptor are checked before the slow start. */
+  if (!s->cfg.precompile && ready_prepare(s->cfg.port_file, s->cfg.ready_fd) != 0) {
+    ready_finish();
+    return 1;
+  }
   scene_set_data_dir(s->cfg.data_dir[0] ? s->cfg.data_dir : NULL);
   scene_set_volume_limit(s->cfg.limits.cloud_side);
   scene_set_cloud_side(s->cfg.limits.cloud_side);
@@ -183,6 +197,7 @@ int main(int argc, char **argv) {
   char err[8192];
   if (renderer_create(&ropts, &renderer, err, sizeof err) != 0) {
     LOG(LOG_ERROR, "opencl", "%s", err);
+    ready_finish();
     return 1;
   }
   if (s->cfg.precompile)
@@ -200,6 +215,7 @@ int main(int argc, char **argv) {
   if (!s->worker) {
     renderer_destroy(renderer);
     reclaim_stop();
+    ready_finish();
     return 1;
   }
 
@@ -231,16 +247,15 @@ int main(int argc, char **argv) {
     uv_run(s->loop, UV_RUN_DEFAULT);
     uv_loop_close(s->loop);
     reclaim_stop();
+    ready_finish();
     return 1;
   }
 
   int exit_code = 0;
   server_features_register(s);
-  if (net_listen(s) != 0) {
+  if (net_listen(s) != 0 || announce(s) != 0) {
     exit_code = 1;
     server_request_stop(s);
-  } else {
-    announce(s);
   }
   uv_run(s->loop, UV_RUN_DEFAULT);
   service_stopping();
@@ -255,6 +270,7 @@ int main(int argc, char **argv) {
   seeding_prune();
   scene_files_prune();
   reclaim_stop();
+  ready_finish();
   LOG(LOG_INFO, "server", "stopped");
   return exit_code;
 }

@@ -248,6 +248,7 @@ class Server:
         self.start_s = None  # Seconds from exec to the listening line.
         self._lines = queue.Queue()
         self._conns = []
+        self.popen_kw = {}  # More subprocess.Popen arguments (pass_fds, ...).
 
     def start(self):
         if self.data_dir is None:
@@ -259,7 +260,7 @@ class Server:
         self.cmd = cmd
         t0 = time.monotonic()
         self.proc = subprocess.Popen(cmd, stdin=subprocess.DEVNULL, stdout=subprocess.PIPE,
-                                     stderr=self._log, env=self.env)
+                                     stderr=self._log, env=self.env, **self.popen_kw)
         _live_servers.append(self)
         threading.Thread(target=self._pump_stdout, daemon=True).start()
         deadline = t0 + self.start_timeout

@@ -1,6 +1,6 @@
 #!/usr/bin/env python3
 """Integration test of the clients: starts a real volfxd on a free port and drives it with the
-C CLI (bin/volfx) and the Python client (client/python/volfx.py).
+C CLI (bin/volfx) and the Python client (the package client/python/volfx).
 
 Run from the repository root: python3 tests/integration/test_client.py --bin build/bin
 Exits 0 when every check passed; prints the first failure and exits 1 otherwise. A watchdog
@@ -204,7 +204,7 @@ def test_cli(cli, work):
 
 def load_python_client():
     spec = importlib.util.spec_from_file_location(
-        "volfx", os.path.join(ROOT, "client", "python", "volfx.py"))
+        "volfx", os.path.join(ROOT, "client", "python", "volfx", "__init__.py"))
     volfx = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(volfx)
     return volfx
@@ -241,11 +241,11 @@ def test_python(port):
         c.patch({"camera": {"fov_y": 42}})
         check(c.get("camera.fov_y") == 42, "patch did not apply")
 
-    out = subprocess.run([sys.executable, os.path.join(ROOT, "client", "python", "volfx.py"),
-                          "--port", str(port), "get", "camera.fov_y"],
-                         capture_output=True, timeout=CALL_TIMEOUT)
+    env = dict(os.environ, PYTHONPATH=os.path.join(ROOT, "client", "python"))
+    out = subprocess.run([sys.executable, "-m", "volfx", "--port", str(port), "get",
+                          "camera.fov_y"], capture_output=True, timeout=CALL_TIMEOUT, env=env)
     check(out.returncode == 0 and json.loads(out.stdout) == 42,
-          "volfx.py get: %r %r" % (out.stdout, out.stderr))
+          "python3 -m volfx get: %r %r" % (out.stdout, out.stderr))
 
 
 def test_token_unix(bindir, root):

@@ -2,7 +2,8 @@
 """
 volfxd's command line, config file and life cycle: refusing a non-loopback address without a
 token, --help/--version, bad options, a config file's limits, a missing main scene, the Unix
-socket, and a graceful stop on SIGINT and SIGTERM.
+socket, the readiness a parent waits on (--port-file, --ready-fd), and a graceful stop on
+SIGINT and SIGTERM.
 
     python3 tests/integration/test_startup.py --bin build/bin
 """
@@ -125,6 +126,48 @@ def graceful_signals(s):
                 "a render in flight at %s is answered" % sig.name, mock.short(resp))
         s.eq(srv.proc.wait(60), 0, "exit status after %s" % sig.name)
         srv.stop()
+
+
+@T
+def port_file_and_ready_fd(s):
+    d = tempfile.mkdtemp(prefix="volfx-ready-")
+    port_file = os.path.join(d, "port")
+    rfd, wfd = os.pipe()
+    try:
+        srv = mock.Server(s.bin, "--port-file", port_file, "--ready-fd", str(wfd))
+        srv.popen_kw = {"pass_fds": (wfd,)}
+        with srv:
+            os.close(wfd)
+            wfd = -1
+            line = os.read(rfd, 4096).decode()
+            s.eq(line, "ready %d %s\n" % (srv.port, srv.host), "--ready-fd gets one line")
+            s.eq(os.read(rfd, 4096), b"", "and is closed after it")
+            with open(port_file) as f:
+                s.eq(f.read(), "%d\n%s\n" % (srv.port, srv.host), "the port file's contents")
+            s.eq(sorted(os.listdir(d)), ["port"], "no temporary file is left beside it")
+        s.check(not os.path.exists(port_file), "the port file is removed at exit", port_file)
+    finally:
+        os.close(rfd)
+        if wfd >= 0:
+            os.close(wfd)
+    # The config file's member of the same name.
+    cfg = os.path.join(d, "volfxd.json")
+    with open(cfg, "w") as f:
+        json.dump({"port-file": port_file}, f)
+    with mock.Server(s.bin, "--config", cfg) as srv:
+        with open(port_file) as f:
+            s.eq(f.read().split(), [str(srv.port), srv.host], "port-file in the config file")
+    # A place volfxd cannot write fails the start at once, naming the path and the cause.
+    for bad, cause in ((os.path.join(d, "missing", "port"), "No such file or directory"),
+                       (d, "is a directory")):
+        rc, _, err = run(s, "--listen", "127.0.0.1:0", "--port-file", bad)
+        s.check(rc != 0 and bad in err and cause in err and "listening" not in err,
+                "an unwritable port file %s is a start-up error" % bad, "rc %d: %s" % (rc, err))
+    rc, _, err = run(s, "--listen", "127.0.0.1:0", "--ready-fd", "97")
+    s.check(rc != 0 and "--ready-fd 97" in err, "a ready descriptor that is not open is refused",
+            "rc %d: %s" % (rc, err))
+    rc, _, err = run(s, "--ready-fd", "x")
+    s.check(rc == 2 and "--ready-fd" in err, "--ready-fd wants a number", err)
 
 
 if __name__ == "__main__":

@@ -14,7 +14,9 @@ when the request asked for ``encoding: "base64"``).
             print(params["frame"], len(data))
         c.unsubscribe(sid)
 
-Run as a script it mirrors the C ``volfx`` CLI: ``python3 volfx.py --port P info``.
+Run as a module it mirrors the C ``volfx`` CLI: ``python3 -m volfx --port P info`` (with
+``client/python`` on ``PYTHONPATH``). ``volfx.testing`` starts a private volfxd for a test
+suite and compares frames with golden images (docs/testing.md).
 """
 
 import argparse
@@ -467,7 +469,7 @@ def _run(c, a):
 
 
 def main(argv=None):
-    ap = argparse.ArgumentParser(prog="volfx.py", description="Python client of volfxd.")
+    ap = argparse.ArgumentParser(prog="volfx", description="Python client of volfxd.")
     ap.add_argument("--host", default=DEFAULT_HOST)
     ap.add_argument("--port", type=int, default=DEFAULT_PORT)
     ap.add_argument("--unix")
