@@ -33,26 +33,6 @@
  * of a thread-pool thread (seeding.h). */
 #define CLOUD_INIT_STEP_CELLS (1ull << 32)
 
-static int set_err(scene_error_t *err, int code, const char *path, const char *fmt, ...) {
-  if (!err)
-    return -1;
-  err->code = code;
-  snprintf(err->path, sizeof err->path, "%s", path ? path : "");
-  va_list ap;
-  va_start(ap, fmt);
-  vsnprintf(err->message, sizeof err->message, fmt, ap);
-  va_end(ap);
-  return -1;
-}
-
-static void clear_err(scene_error_t *err) {
-  if (err) {
-    err->code = 0;
-    err->path[0] = '\0';
-    err->message[0] = '\0';
-  }
-}
-
 /* Member 'name' of 'obj', case-sensitively; the validated document always has it. */
 static cJSON *get(const cJSON *obj, const char *name) {
   return cJSON_GetObjectItemCaseSensitive(obj, name);
@@ -104,9 +84,9 @@ static int check_volumes(const cJSON *doc, scene_error_t *err) {
     for (int k = 0; k < 3; k++)
       if (!(hi[k] > lo[k])) {
         snprintf(p, sizeof p, "volumes.%d.bounds.max", i);
-        return set_err(err, PROTO_E_INVALID_PARAMS, p,
-                       "%s: must be above bounds.min on every axis (%c: %g <= %g)", p, "xyz"[k],
-                       hi[k], lo[k]);
+        return proto_error_set(err, PROTO_E_INVALID_PARAMS, p,
+                               "%s: must be above bounds.min on every axis (%c: %g <= %g)", p,
+                               "xyz"[k], hi[k], lo[k]);
       }
     /* The file's name and dims are checked wherever they are given, so that even a noise
      * volume's document holds no name outside the data directory; a file volume needs both. */
@@ -114,28 +94,31 @@ static int check_volumes(const cJSON *doc, scene_error_t *err) {
     int from_file = strcmp(get(v, "source")->valuestring, "file") == 0;
     snprintf(p, sizeof p, "volumes.%d.file", i);
     if (from_file && (!file || !file->valuestring[0]))
-      return set_err(err, PROTO_E_INVALID_PARAMS, p,
-                     "%s: a file volume needs a file (raw densities under the data directory)", p);
+      return proto_error_set(
+          err, PROTO_E_INVALID_PARAMS, p,
+          "%s: a file volume needs a file (raw densities under the data directory)", p);
     if (file && file->valuestring[0] && !datapath_name_ok(file->valuestring))
-      return set_err(err, PROTO_E_INVALID_PARAMS, p,
-                     "%s: \"%.64s\" must be a relative path inside the data directory: letters, "
-                     "digits, '_', '-', '.', '/', no component starting with '.'",
-                     p, file->valuestring);
+      return proto_error_set(
+          err, PROTO_E_INVALID_PARAMS, p,
+          "%s: \"%.64s\" must be a relative path inside the data directory: letters, "
+          "digits, '_', '-', '.', '/', no component starting with '.'",
+          p, file->valuestring);
     snprintf(p, sizeof p, "volumes.%d.dims", i);
     if (from_file && !dims)
-      return set_err(err, PROTO_E_INVALID_PARAMS, p, "%s: a file volume needs dims", p);
+      return proto_error_set(err, PROTO_E_INVALID_PARAMS, p, "%s: a file volume needs dims", p);
     if (dims) {
       double d[3];
       vec3d(dims, d);
       for (int k = 0; k < 3; k++) {
         snprintf(p, sizeof p, "volumes.%d.dims.%d", i, k);
         if (d[k] != floor(d[k]))
-          return set_err(err, PROTO_E_INVALID_PARAMS, p, "%s: %s is not an integer", p,
-                         num_text(d[k]).s);
+          return proto_error_set(err, PROTO_E_INVALID_PARAMS, p, "%s: %s is not an integer", p,
+                                 num_text(d[k]).s);
         if (d[k] > g_volume_side)
-          return set_err(err, PROTO_E_LIMIT, p,
-                         "%s: %g voxels is over the limit of %u per side (limits.cloud_side)", p,
-                         d[k], g_volume_side);
+          return proto_error_set(
+              err, PROTO_E_LIMIT, p,
+              "%s: %g voxels is over the limit of %u per side (limits.cloud_side)", p, d[k],
+              g_volume_side);
       }
     }
     const char *id = get(v, "id")->valuestring;
@@ -143,8 +126,8 @@ static int check_volumes(const cJSON *doc, scene_error_t *err) {
     for (const cJSON *q = vols->child; id[0] && q != v; q = q->next, j++)
       if (strcmp(get(q, "id")->valuestring, id) == 0) {
         snprintf(p, sizeof p, "volumes.%d.id", i);
-        return set_err(err, PROTO_E_INVALID_PARAMS, p, "%s: \"%s\" is already the id of volumes.%d",
-                       p, id, j);
+        return proto_error_set(err, PROTO_E_INVALID_PARAMS, p,
+                               "%s: \"%s\" is already the id of volumes.%d", p, id, j);
       }
   }
   return 0;
@@ -175,7 +158,7 @@ static int compile_volumes(const cJSON *doc, render_scene_t *rs, scene_error_t *
     return 0;
   rs->volumes = calloc((size_t)n, sizeof *rs->volumes);
   if (!rs->volumes)
-    return set_err(err, PROTO_E_INTERNAL, "", "out of memory");
+    return proto_error_set(err, PROTO_E_INTERNAL, "", "out of memory");
   int i = 0;
   for (const cJSON *v = vols->child; v; v = v->next, i++) {
     rvolume_t *rv = &rs->volumes[i];
@@ -246,7 +229,7 @@ static int check_objects(const cJSON *objs, scene_error_t *err) {
   int n = cJSON_GetArraySize(objs), nids = 0, mesh = -1, i = 0, j = -1;
   id_at_t *ids = malloc(((size_t)n + 1) * sizeof *ids);
   if (!ids)
-    return set_err(err, PROTO_E_INTERNAL, "", "out of memory");
+    return proto_error_set(err, PROTO_E_INTERNAL, "", "out of memory");
   for (const cJSON *o = objs->child; o; o = o->next, i++) {
     const cJSON *file = get(o, "file");
     if (mesh < 0 && strcmp(get(o, "shape")->valuestring, "mesh") == 0 &&
@@ -261,12 +244,14 @@ static int check_objects(const cJSON *objs, scene_error_t *err) {
   int rc = 0;
   if (mesh >= 0 && (dup < 0 || mesh <= dup)) {
     snprintf(p, sizeof p, "objects.%d.file", mesh);
-    rc = set_err(err, PROTO_E_INVALID_PARAMS, p,
-                 "%s: a mesh object needs a file (an OBJ path under the data directory)", p);
+    rc =
+        proto_error_set(err, PROTO_E_INVALID_PARAMS, p,
+                        "%s: a mesh object needs a file (an OBJ path under the data directory)", p);
   } else if (dup >= 0) {
     snprintf(p, sizeof p, "objects.%d.id", dup);
-    rc = set_err(err, PROTO_E_INVALID_PARAMS, p, "%s: \"%s\" is already the id of objects.%d", p,
-                 get(cJSON_GetArrayItem(objs, dup), "id")->valuestring, j);
+    rc = proto_error_set(err, PROTO_E_INVALID_PARAMS, p,
+                         "%s: \"%s\" is already the id of objects.%d", p,
+                         get(cJSON_GetArrayItem(objs, dup), "id")->valuestring, j);
   }
   free(ids);
   return rc;
@@ -282,21 +267,21 @@ int scene_check_camera(const cJSON *cam, scene_error_t *err) {
   double flen = norm3(fwd);
   double scale = fmax(1.0, fmax(norm3(eye), norm3(target)));
   if (!(flen > EYE_TARGET_EPS * scale))
-    return set_err(err, PROTO_E_INVALID_PARAMS, "camera.target",
-                   "camera.target: must differ from camera.eye");
+    return proto_error_set(err, PROTO_E_INVALID_PARAMS, "camera.target",
+                           "camera.target: must differ from camera.eye");
   double ulen = norm3(up);
   if (ulen == 0)
-    return set_err(err, PROTO_E_INVALID_PARAMS, "camera.up",
-                   "camera.up: must not be the zero vector");
+    return proto_error_set(err, PROTO_E_INVALID_PARAMS, "camera.up",
+                           "camera.up: must not be the zero vector");
   double c[3] = {fwd[1] * up[2] - fwd[2] * up[1], fwd[2] * up[0] - fwd[0] * up[2],
                  fwd[0] * up[1] - fwd[1] * up[0]};
   if (!(norm3(c) > UP_PARALLEL_EPS * flen * ulen))
-    return set_err(err, PROTO_E_INVALID_PARAMS, "camera.up",
-                   "camera.up: must not be parallel to the view direction (target - eye)");
+    return proto_error_set(err, PROTO_E_INVALID_PARAMS, "camera.up",
+                           "camera.up: must not be parallel to the view direction (target - eye)");
   double near_ = get(cam, "near")->valuedouble, far_ = get(cam, "far")->valuedouble;
   if (!(near_ < far_))
-    return set_err(err, PROTO_E_INVALID_PARAMS, "camera.far",
-                   "camera.far: %g must be greater than camera.near (%g)", far_, near_);
+    return proto_error_set(err, PROTO_E_INVALID_PARAMS, "camera.far",
+                           "camera.far: %g must be greater than camera.near (%g)", far_, near_);
   return 0;
 }
 
@@ -323,10 +308,11 @@ static int count_keys(const cJSON *w, int i, uint64_t *total, scene_error_t *err
     if (*total > g_keyframes) {
       char p[64];
       snprintf(p, sizeof p, "waves.%d.animate.%d.keys", i, m);
-      return set_err(err, PROTO_E_LIMIT, p,
-                     "%s: the scene's animations would hold %llu keys, over the limit of %u "
-                     "(limits.keyframes)",
-                     p, (unsigned long long)*total, g_keyframes);
+      return proto_error_set(
+          err, PROTO_E_LIMIT, p,
+          "%s: the scene's animations would hold %llu keys, over the limit of %u "
+          "(limits.keyframes)",
+          p, (unsigned long long)*total, g_keyframes);
     }
   }
   return 0;
@@ -355,22 +341,21 @@ static int check_waves(cJSON *doc, scene_error_t *err) {
     for (const cJSON *q = waves->child; id[0] && q != w; q = q->next, j++) {
       if (strcmp(get(q, "id")->valuestring, id) == 0) {
         snprintf(p, sizeof p, "waves.%d.id", i);
-        return set_err(err, PROTO_E_INVALID_PARAMS, p, "%s: \"%s\" is already the id of waves.%d",
-                       p, id, j);
+        return proto_error_set(err, PROTO_E_INVALID_PARAMS, p,
+                               "%s: \"%s\" is already the id of waves.%d", p, id, j);
       }
     }
     if (get(w, "a")->valuedouble == 0 && get(w, "b")->valuedouble == 0 && !anim_animates(w, "a") &&
         !anim_animates(w, "b")) {
       snprintf(p, sizeof p, "waves.%d.a", i);
-      return set_err(err, PROTO_E_INVALID_PARAMS, p,
-                     "%s: a and b are both 0, so the wave would never show", p);
+      return proto_error_set(err, PROTO_E_INVALID_PARAMS, p,
+                             "%s: a and b are both 0, so the wave would never show", p);
     }
     if (count_keys(w, i, &keys, err) != 0)
       return -1;
     snprintf(p, sizeof p, "waves.%d", i);
-    sch_error_t se;
-    if (anim_check(w, wf, p, &se) != 0)
-      return set_err(err, PROTO_E_INVALID_PARAMS, se.path, "%s", se.message);
+    if (anim_check(w, wf, p, err) != 0)
+      return -1;
   }
   return 0;
 }
@@ -456,15 +441,16 @@ static int check_fluid(const cJSON *doc, scene_error_t *err) {
   vec3d(get(b, "max"), hi);
   for (int i = 0; i < 3; i++)
     if (!(lo[i] < hi[i]))
-      return set_err(err, PROTO_E_INVALID_PARAMS, "fluid.bounds.max",
-                     "fluid.bounds.max: must be above fluid.bounds.min on every axis");
+      return proto_error_set(err, PROTO_E_INVALID_PARAMS, "fluid.bounds.max",
+                             "fluid.bounds.max: must be above fluid.bounds.min on every axis");
   /* The solver works in float32: a mass it would round to a denormal or to 0 makes NaNs. */
   double mass = get(fluid, "particle_mass")->valuedouble;
   if (mass > 0 && mass < FLUID_MIN_MASS)
-    return set_err(err, PROTO_E_INVALID_PARAMS, "fluid.particle_mass",
-                   "fluid.particle_mass: %g is too small for the float32 solver: 0 (the lattice "
-                   "mass) or from %g",
-                   mass, FLUID_MIN_MASS);
+    return proto_error_set(
+        err, PROTO_E_INVALID_PARAMS, "fluid.particle_mass",
+        "fluid.particle_mass: %g is too small for the float32 solver: 0 (the lattice "
+        "mass) or from %g",
+        mass, FLUID_MIN_MASS);
   char p[64];
   int k = 0;
   for (const cJSON *em = get(fluid, "emitters")->child; em; em = em->next, k++) {
@@ -472,7 +458,7 @@ static int check_fluid(const cJSON *doc, scene_error_t *err) {
     vec3d(get(em, "position"), c);
     if (!inside(c, lo, hi)) {
       snprintf(p, sizeof p, "fluid.emitters.%d.position", k);
-      return set_err(err, PROTO_E_INVALID_PARAMS, p, "%s: must lie inside fluid.bounds", p);
+      return proto_error_set(err, PROTO_E_INVALID_PARAMS, p, "%s: must lie inside fluid.bounds", p);
     }
   }
   double total = 0, cap = get(fluid, "max_particles")->valuedouble;
@@ -482,7 +468,7 @@ static int check_fluid(const cJSON *doc, scene_error_t *err) {
     vec3d(get(blk, "origin"), o);
     if (!inside(o, lo, hi)) {
       snprintf(p, sizeof p, "fluid.initial.%d.origin", k);
-      return set_err(err, PROTO_E_INVALID_PARAMS, p, "%s: must lie inside fluid.bounds", p);
+      return proto_error_set(err, PROTO_E_INVALID_PARAMS, p, "%s: must lie inside fluid.bounds", p);
     }
     uint64_t n = (uint64_t)get(blk, "count")->valuedouble;
     uint64_t nx = (uint64_t)get(blk, "nx")->valuedouble, nz = (uint64_t)get(blk, "nz")->valuedouble;
@@ -493,16 +479,17 @@ static int check_fluid(const cJSON *doc, scene_error_t *err) {
       top[i] = o[i] + sp * (double)far[i];
     if (!inside(top, lo, hi)) {
       snprintf(p, sizeof p, "fluid.initial.%d.count", k);
-      return set_err(err, PROTO_E_INVALID_PARAMS, p,
-                     "%s: the block reaches (%g, %g, %g), outside fluid.bounds", p, top[0], top[1],
-                     top[2]);
+      return proto_error_set(err, PROTO_E_INVALID_PARAMS, p,
+                             "%s: the block reaches (%g, %g, %g), outside fluid.bounds", p, top[0],
+                             top[1], top[2]);
     }
     total += (double)n;
     if (total > cap) {
       snprintf(p, sizeof p, "fluid.initial.%d.count", k);
-      return set_err(err, PROTO_E_INVALID_PARAMS, p,
-                     "%s: the blocks hold %.0f particles, more than fluid.max_particles (%.0f)", p,
-                     total, cap);
+      return proto_error_set(
+          err, PROTO_E_INVALID_PARAMS, p,
+          "%s: the blocks hold %.0f particles, more than fluid.max_particles (%.0f)", p, total,
+          cap);
     }
   }
   return 0;
@@ -670,24 +657,26 @@ static int check_cloud(const cJSON *doc, scene_error_t *err) {
     char p[32];
     snprintf(p, sizeof p, "cloud.grid.%d", i);
     if (n[i] != floor(n[i]))
-      return set_err(err, PROTO_E_INVALID_PARAMS, p, "%s: %s is not a whole number of cells", p,
-                     num_text(n[i]).s);
+      return proto_error_set(err, PROTO_E_INVALID_PARAMS, p,
+                             "%s: %s is not a whole number of cells", p, num_text(n[i]).s);
     /* A disabled cloud has no cells, so only an enabled one is held to the configured limit
      * (the default 64³ must not break every scene of a server with a smaller one); no side
      * may pass the largest limit a server can be given. */
     int enabled = cJSON_IsTrue(get(cloud, "enabled"));
     uint32_t limit = enabled ? g_cloud_side : CLOUD_MAX_SIDE;
     if (n[i] > limit)
-      return set_err(err, PROTO_E_LIMIT, p, "%s: %g cells is over the limit of %u per side (%s)", p,
-                     n[i], limit, enabled ? "limits.cloud_side" : "the most any server allows");
+      return proto_error_set(err, PROTO_E_LIMIT, p,
+                             "%s: %g cells is over the limit of %u per side (%s)", p, n[i], limit,
+                             enabled ? "limits.cloud_side" : "the most any server allows");
   }
   /* The seeding steps are bounded so that one change cannot hold a thread for long. */
   double steps = get(get(cloud, "init"), "steps")->valuedouble;
   if (steps * n[0] * n[1] * n[2] > CLOUD_INIT_STEP_CELLS && cJSON_IsTrue(get(cloud, "enabled")))
-    return set_err(err, PROTO_E_LIMIT, "cloud.init.steps",
-                   "cloud.init.steps: %g steps of a %gx%gx%g grid is over the limit of %llu "
-                   "cell-steps",
-                   steps, n[0], n[1], n[2], CLOUD_INIT_STEP_CELLS);
+    return proto_error_set(
+        err, PROTO_E_LIMIT, "cloud.init.steps",
+        "cloud.init.steps: %g steps of a %gx%gx%g grid is over the limit of %llu "
+        "cell-steps",
+        steps, n[0], n[1], n[2], CLOUD_INIT_STEP_CELLS);
   int i = 0;
   for (const cJSON *e = get(cloud, "ellipsoids")->child; e; e = e->next, i++) {
     double r[3];
@@ -695,7 +684,7 @@ static int check_cloud(const cJSON *doc, scene_error_t *err) {
     if (!(r[0] > 0 && r[1] > 0 && r[2] > 0)) {
       char p[64];
       snprintf(p, sizeof p, "cloud.ellipsoids.%d.radii", i);
-      return set_err(err, PROTO_E_INVALID_PARAMS, p, "%s: every radius must be above 0", p);
+      return proto_error_set(err, PROTO_E_INVALID_PARAMS, p, "%s: every radius must be above 0", p);
     }
   }
   return 0;
@@ -821,7 +810,7 @@ static render_scene_t *compile(const cJSON *doc, particles_t *particles, const c
                                density_grid_t *cloud, scene_error_t *err) {
   render_scene_t *rs = calloc(1, sizeof *rs);
   if (!rs) {
-    set_err(err, PROTO_E_INTERNAL, "", "out of memory");
+    proto_error_set(err, PROTO_E_INTERNAL, "", "out of memory");
     return NULL;
   }
   atomic_init(&rs->refs, 1);
@@ -863,7 +852,7 @@ static render_scene_t *compile(const cJSON *doc, particles_t *particles, const c
     rs->objects = calloc((size_t)n, sizeof *rs->objects);
     if (!rs->objects) {
       render_scene_unref(rs);
-      set_err(err, PROTO_E_INTERNAL, "", "out of memory");
+      proto_error_set(err, PROTO_E_INTERNAL, "", "out of memory");
       return NULL;
     }
   }
@@ -887,7 +876,7 @@ static render_scene_t *compile(const cJSON *doc, particles_t *particles, const c
   }
   if (compile_waves(doc, rs) != 0) {
     render_scene_unref(rs);
-    set_err(err, PROTO_E_INTERNAL, "", "out of memory");
+    proto_error_set(err, PROTO_E_INTERNAL, "", "out of memory");
     return NULL;
   }
   compile_fluid(doc, particles, rs);
@@ -905,9 +894,8 @@ static render_scene_t *compile(const cJSON *doc, particles_t *particles, const c
  * value written there is replaced). Returns 0, or -1 with 'err' set.
  */
 static int prepare(cJSON *doc, scene_error_t *err) {
-  sch_error_t se;
-  if (sch_validate(&scene_schema, doc, "", &se) != 0)
-    return set_err(err, PROTO_E_INVALID_PARAMS, se.path, "%s", se.message);
+  if (sch_validate(&scene_schema, doc, "", err) != 0)
+    return -1;
   if (check_cross(doc, err) != 0 || check_waves(doc, err) != 0 || check_volumes(doc, err) != 0 ||
       check_fluid(doc, err) != 0 || check_cloud(doc, err) != 0)
     return -1;
@@ -958,10 +946,11 @@ static int particles_fit(const cJSON *fluid, const particles_t *p, const char *p
     const float *q = p->pos + 3 * (size_t)i;
     for (int k = 0; k < 3; k++)
       if (!(q[k] >= lo[k] && q[k] <= hi[k]))
-        return set_err(err, PROTO_E_INVALID_PARAMS, path,
-                       "%s: particle %u at (%g, %g, %g) lies outside fluid.bounds (%g..%g on %c); "
-                       "move the particles first (fluid.set_particles)",
-                       what, i, q[0], q[1], q[2], lo[k], hi[k], "xyz"[k]);
+        return proto_error_set(
+            err, PROTO_E_INVALID_PARAMS, path,
+            "%s: particle %u at (%g, %g, %g) lies outside fluid.bounds (%g..%g on %c); "
+            "move the particles first (fluid.set_particles)",
+            what, i, q[0], q[1], q[2], lo[k], hi[k], "xyz"[k]);
   }
   return 0;
 }
@@ -1109,11 +1098,12 @@ static int sim_fits(const scene_t *s, const cJSON *doc, uint64_t particles, cons
     return 0;
   char path[64];
   blame(s->doc, s->particles ? s->particles->count : 0, doc, particles, ppath, path, sizeof path);
-  return set_err(err, PROTO_E_LIMIT, path,
-                 "%s: the scenes' simulation state would take about %llu MiB (this scene %llu "
-                 "MiB), over the limit of %llu MiB (limits.scene_bytes)",
-                 path, (unsigned long long)((g_sim_total - s->sim_bytes + est) >> 20),
-                 (unsigned long long)(est >> 20), (unsigned long long)(g_sim_budget >> 20));
+  return proto_error_set(
+      err, PROTO_E_LIMIT, path,
+      "%s: the scenes' simulation state would take about %llu MiB (this scene %llu "
+      "MiB), over the limit of %llu MiB (limits.scene_bytes)",
+      path, (unsigned long long)((g_sim_total - s->sim_bytes + est) >> 20),
+      (unsigned long long)(est >> 20), (unsigned long long)(g_sim_budget >> 20));
 }
 
 /* Counts the scene for 'particles' particles from now on. */
@@ -1124,7 +1114,7 @@ static void sim_account(scene_t *s, uint64_t particles) {
 }
 
 int scene_particles_fit_budget(const scene_t *s, uint64_t n, const char *path, scene_error_t *err) {
-  clear_err(err);
+  proto_error_clear(err);
   if (sim_fits(s, s->doc, n, path, err) == 0)
     return 0;
   snprintf(err->path, sizeof err->path, "%s", path); /* The particles, whatever the fluid says. */
@@ -1236,13 +1226,13 @@ fail:
 /* ---- Public API ---- */
 
 scene_t *scene_create(const char *name, const cJSON *preset, scene_error_t *err) {
-  clear_err(err);
+  proto_error_clear(err);
   if (!name || strlen(name) >= sizeof((scene_t *)0)->name) {
-    set_err(err, PROTO_E_INVALID_PARAMS, "name", "name: must be 1 to 63 bytes");
+    proto_error_set(err, PROTO_E_INVALID_PARAMS, "name", "name: must be 1 to 63 bytes");
     return NULL;
   }
   if (preset && !cJSON_IsObject(preset)) {
-    set_err(err, PROTO_E_INVALID_PARAMS, "", "a scene document must be a JSON object");
+    proto_error_set(err, PROTO_E_INVALID_PARAMS, "", "a scene document must be a JSON object");
     return NULL;
   }
   scene_t *s = calloc(1, sizeof *s);
@@ -1250,7 +1240,7 @@ scene_t *scene_create(const char *name, const cJSON *preset, scene_error_t *err)
   if (!s || !doc) {
     free(s);
     cJSON_Delete(doc);
-    set_err(err, PROTO_E_INTERNAL, "", "out of memory");
+    proto_error_set(err, PROTO_E_INTERNAL, "", "out of memory");
     return NULL;
   }
   snprintf(s->name, sizeof s->name, "%s", name);
@@ -1279,15 +1269,15 @@ void scene_destroy(scene_t *s) {
 }
 
 cJSON *scene_get(const scene_t *s, const char *path, scene_error_t *err) {
-  clear_err(err);
+  proto_error_clear(err);
   cJSON *v = sch_path_get(s->doc, path);
   if (!v) {
-    set_err(err, PROTO_E_NOT_FOUND, path, "no such path in the scene: %s", path);
+    proto_error_set(err, PROTO_E_NOT_FOUND, path, "no such path in the scene: %s", path);
     return NULL;
   }
   cJSON *copy = cJSON_Duplicate(v, 1);
   if (!copy)
-    set_err(err, PROTO_E_INTERNAL, path ? path : "", "out of memory");
+    proto_error_set(err, PROTO_E_INTERNAL, path ? path : "", "out of memory");
   return copy;
 }
 
@@ -1343,13 +1333,13 @@ static int merge_patch(cJSON *target, const cJSON *patch) {
  * object inside "objects" is changed by sending the whole array (or with scene_set_path).
  */
 int scene_patch(scene_t *s, const cJSON *patch, scene_error_t *err) {
-  clear_err(err);
+  proto_error_clear(err);
   if (!cJSON_IsObject(patch))
-    return set_err(err, PROTO_E_INVALID_PARAMS, "", "a patch must be a JSON object");
+    return proto_error_set(err, PROTO_E_INVALID_PARAMS, "", "a patch must be a JSON object");
   cJSON *doc = cJSON_Duplicate(s->doc, 1);
   if (!doc || merge_patch(doc, patch) != 0) {
     cJSON_Delete(doc);
-    return set_err(err, PROTO_E_INTERNAL, "", "out of memory");
+    return proto_error_set(err, PROTO_E_INTERNAL, "", "out of memory");
   }
   return commit(s, doc, NULL, err);
 }
@@ -1362,29 +1352,30 @@ int scene_patch(scene_t *s, const cJSON *patch, scene_error_t *err) {
  * empty path is refused: the whole document changes through scene_patch or scene_replace.
  */
 int scene_set_path(scene_t *s, const char *path, const cJSON *value, scene_error_t *err) {
-  clear_err(err);
+  proto_error_clear(err);
   if (!path || !path[0])
-    return set_err(err, PROTO_E_INVALID_PARAMS, "",
-                   "a path must name a member of the scene (use a patch for the whole scene)");
+    return proto_error_set(
+        err, PROTO_E_INVALID_PARAMS, "",
+        "a path must name a member of the scene (use a patch for the whole scene)");
   if (!value)
-    return set_err(err, PROTO_E_INVALID_PARAMS, path, "%s: a value is required", path);
+    return proto_error_set(err, PROTO_E_INVALID_PARAMS, path, "%s: a value is required", path);
   char parent_path[256];
   if (strlen(path) >= sizeof parent_path)
-    return set_err(err, PROTO_E_NOT_FOUND, path, "no such path in the scene: %.200s", path);
+    return proto_error_set(err, PROTO_E_NOT_FOUND, path, "no such path in the scene: %.200s", path);
   snprintf(parent_path, sizeof parent_path, "%s", path);
   char *dot = strrchr(parent_path, '.');
   const char *last = dot ? dot + 1 : parent_path;
   if (dot)
     *dot = '\0';
   if (!last[0])
-    return set_err(err, PROTO_E_NOT_FOUND, path, "no such path in the scene: %s", path);
+    return proto_error_set(err, PROTO_E_NOT_FOUND, path, "no such path in the scene: %s", path);
 
   cJSON *doc = cJSON_Duplicate(s->doc, 1);
   cJSON *v = cJSON_Duplicate(value, 1);
   if (!doc || !v) {
     cJSON_Delete(doc);
     cJSON_Delete(v);
-    return set_err(err, PROTO_E_INTERNAL, "", "out of memory");
+    return proto_error_set(err, PROTO_E_INTERNAL, "", "out of memory");
   }
   cJSON *parent = dot ? sch_path_get(doc, parent_path) : doc;
   int ok = 0;
@@ -1419,8 +1410,8 @@ int scene_set_path(scene_t *s, const char *path, const cJSON *value, scene_error
     cJSON_Delete(doc);
     cJSON_Delete(v);
     if (ok == -1)
-      return set_err(err, PROTO_E_NOT_FOUND, path, "no such path in the scene: %s", path);
-    return set_err(err, PROTO_E_INTERNAL, "", "out of memory");
+      return proto_error_set(err, PROTO_E_NOT_FOUND, path, "no such path in the scene: %s", path);
+    return proto_error_set(err, PROTO_E_INTERNAL, "", "out of memory");
   }
   return commit(s, doc, NULL, err);
 }
@@ -1431,12 +1422,13 @@ int scene_replace(scene_t *s, const cJSON *doc, scene_error_t *err) {
 
 int scene_replace_saved(scene_t *s, const cJSON *doc, const scene_saved_t *saved,
                         scene_error_t *err) {
-  clear_err(err);
+  proto_error_clear(err);
   if (!cJSON_IsObject(doc))
-    return set_err(err, PROTO_E_INVALID_PARAMS, "", "a scene document must be a JSON object");
+    return proto_error_set(err, PROTO_E_INVALID_PARAMS, "",
+                           "a scene document must be a JSON object");
   cJSON *copy = cJSON_Duplicate(doc, 1);
   if (!copy)
-    return set_err(err, PROTO_E_INTERNAL, "", "out of memory");
+    return proto_error_set(err, PROTO_E_INTERNAL, "", "out of memory");
   return commit(s, copy, saved, err);
 }
 

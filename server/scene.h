@@ -76,11 +76,10 @@ typedef struct scene {
   } clock;
 } scene_t;
 
-typedef struct scene_error {
-  int code;       /* PROTO_E_INVALID_PARAMS, PROTO_E_NOT_FOUND or PROTO_E_LIMIT. */
-  char path[256]; /* Offending dotted path, "" when none. */
-  char message[256];
-} scene_error_t;
+/* A scene's error: the carrier of proto_error.h, its code PROTO_E_INVALID_PARAMS,
+ * PROTO_E_NOT_FOUND, PROTO_E_LIMIT or PROTO_E_INTERNAL, or a deferral (SCENE_DEFERRED,
+ * SCENE_DEFERRED_SEED). */
+typedef proto_error_t scene_error_t;
 
 /*
  * The camera's checks across its fields, on a camera that passed the schema: target away from

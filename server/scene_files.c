@@ -47,18 +47,6 @@ static pthread_mutex_t g_lock = PTHREAD_MUTEX_INITIALIZER;
 static file_entry_t *g_files; /* Guarded by g_lock. */
 static scene_file_t *g_want;  /* Armed deferral (loop thread only), or NULL. */
 
-static int fail(scene_error_t *err, int code, const char *path, const char *fmt, ...) {
-  if (!err)
-    return -1;
-  err->code = code;
-  snprintf(err->path, sizeof err->path, "%s", path);
-  va_list ap;
-  va_start(ap, fmt);
-  vsnprintf(err->message, sizeof err->message, fmt, ap);
-  va_end(ap);
-  return -1;
-}
-
 /* The data directory is opened here, once, for every file a request names (snapshots and job
  * output too): scene_set_data_dir is what start-up calls with it. */
 void scene_set_data_dir(const char *dir) {
@@ -200,9 +188,10 @@ static density_grid_t *grid_read(const scene_file_t *f, int fd, const struct sta
   const char *p = f->path;
   size_t n = (size_t)f->dims[0] * f->dims[1] * f->dims[2], want = n * (f->u8 ? 1 : 4);
   if ((uint64_t)st->st_size != want) {
-    fail(err, PROTO_E_INVALID_PARAMS, p,
-         "%s: \"%.64s\" holds %lld bytes, but dims %ux%ux%u of %s need %zu", p, f->file,
-         (long long)st->st_size, f->dims[0], f->dims[1], f->dims[2], f->u8 ? "u8" : "f32", want);
+    proto_error_set(err, PROTO_E_INVALID_PARAMS, p,
+                    "%s: \"%.64s\" holds %lld bytes, but dims %ux%ux%u of %s need %zu", p, f->file,
+                    (long long)st->st_size, f->dims[0], f->dims[1], f->dims[2],
+                    f->u8 ? "u8" : "f32", want);
     return NULL;
   }
   density_grid_t *g = density_grid_new(f->dims);
@@ -211,14 +200,14 @@ static density_grid_t *grid_read(const scene_file_t *f, int fd, const struct sta
   if (!g || (!raw && errno == ENOMEM)) {
     density_grid_unref(g);
     free(raw);
-    fail(err, PROTO_E_INTERNAL, p, "%s: out of memory for a %zu-voxel grid", p, n);
+    proto_error_set(err, PROTO_E_INTERNAL, p, "%s: out of memory for a %zu-voxel grid", p, n);
     return NULL;
   }
   if (!raw || got != want) {
     density_grid_unref(g);
     free(raw);
-    fail(err, PROTO_E_INVALID_PARAMS, p, "%s: cannot read \"%.64s\"%s", p, f->file,
-         raw ? ": it was cut short while read" : "");
+    proto_error_set(err, PROTO_E_INVALID_PARAMS, p, "%s: cannot read \"%.64s\"%s", p, f->file,
+                    raw ? ": it was cut short while read" : "");
     return NULL;
   }
   for (size_t i = 0; i < n; i++) {
@@ -234,10 +223,11 @@ static density_grid_t *grid_read(const scene_file_t *f, int fd, const struct sta
         size_t z = i / f->dims[0] / f->dims[1];
         density_grid_unref(g);
         free(raw);
-        fail(err, PROTO_E_INVALID_PARAMS, p,
-             "%s: \"%.64s\" has density %g at voxel (%zu, %zu, %zu); densities must be finite "
-             "and non-negative",
-             p, f->file, (double)v, x, y, z);
+        proto_error_set(
+            err, PROTO_E_INVALID_PARAMS, p,
+            "%s: \"%.64s\" has density %g at voxel (%zu, %zu, %zu); densities must be finite "
+            "and non-negative",
+            p, f->file, (double)v, x, y, z);
         return NULL;
       }
     }
@@ -250,23 +240,24 @@ static density_grid_t *grid_read(const scene_file_t *f, int fd, const struct sta
 /* The mesh in the OBJ file 'f', open at 'fd' with stat 'st'. NULL with 'err' set. */
 static mesh_t *mesh_read(const scene_file_t *f, int fd, const struct stat *st, scene_error_t *err) {
   if ((uint64_t)st->st_size > MESH_OBJ_MAX_BYTES) {
-    fail(err, PROTO_E_INVALID_PARAMS, f->path, "%s: \"%.64s\" is %lld bytes, over the limit of %u",
-         f->path, f->file, (long long)st->st_size, MESH_OBJ_MAX_BYTES);
+    proto_error_set(err, PROTO_E_INVALID_PARAMS, f->path,
+                    "%s: \"%.64s\" is %lld bytes, over the limit of %u", f->path, f->file,
+                    (long long)st->st_size, MESH_OBJ_MAX_BYTES);
     return NULL;
   }
   size_t len;
   char *text = datapath_fd_read(fd, (size_t)st->st_size, &len);
   if (!text) {
-    fail(err, errno == ENOMEM ? PROTO_E_INTERNAL : PROTO_E_INVALID_PARAMS, f->path,
-         "%s: cannot read \"%.64s\": %s", f->path, f->file, strerror(errno));
+    proto_error_set(err, errno == ENOMEM ? PROTO_E_INTERNAL : PROTO_E_INVALID_PARAMS, f->path,
+                    "%s: cannot read \"%.64s\": %s", f->path, f->file, strerror(errno));
     return NULL;
   }
   char why[256] = "";
   mesh_t *m = mesh_parse_obj(text, len, f->file, why, sizeof why);
   free(text);
   if (!m)
-    fail(err, PROTO_E_INVALID_PARAMS, f->path, "%s: %s", f->path,
-         why[0] ? why : "cannot load the mesh");
+    proto_error_set(err, PROTO_E_INVALID_PARAMS, f->path, "%s: %s", f->path,
+                    why[0] ? why : "cannot load the mesh");
   return m;
 }
 
@@ -285,8 +276,8 @@ int scene_file_load(const scene_file_t *f, scene_pin_t *pin, scene_error_t *err)
   if (fd < 0) {
     char why[256];
     int code = datapath_error(errno, f->file, 0, 0, why, sizeof why);
-    fail(err, code == PROTO_E_INTERNAL ? code : PROTO_E_INVALID_PARAMS, f->path, "%s: %s", f->path,
-         why);
+    proto_error_set(err, code == PROTO_E_INTERNAL ? code : PROTO_E_INVALID_PARAMS, f->path,
+                    "%s: %s", f->path, why);
     now.st = f->st;
   } else if (f->grid) {
     ok = (pin->grid = grid_read(f, fd, &now.st, err)) != NULL;
@@ -308,7 +299,7 @@ static int resolve(const char *file, const char *path, scene_file_t *f, scene_er
   snprintf(f->path, sizeof f->path, "%s", path);
   snprintf(f->real, sizeof f->real, "%s", file);
   if (datapath_check(file, why, sizeof why) != 0)
-    return fail(err, PROTO_E_INVALID_PARAMS, path, "%s: %s", path, why);
+    return proto_error_set(err, PROTO_E_INVALID_PARAMS, path, "%s: %s", path, why);
   int fd = datapath_open(file, O_PATH, 0);
   int e = fd < 0 || fstat(fd, &f->st) != 0 ? errno : 0;
   if (fd >= 0)
@@ -317,8 +308,8 @@ static int resolve(const char *file, const char *path, scene_file_t *f, scene_er
     e = S_ISDIR(f->st.st_mode) ? EISDIR : S_ISLNK(f->st.st_mode) ? ELOOP : ENODEV;
   if (e) {
     int code = datapath_error(e, file, 0, 0, why, sizeof why);
-    return fail(err, code == PROTO_E_INTERNAL ? code : PROTO_E_INVALID_PARAMS, path, "%s: %s", path,
-                why);
+    return proto_error_set(err, code == PROTO_E_INTERNAL ? code : PROTO_E_INVALID_PARAMS, path,
+                           "%s: %s", path, why);
   }
   return 0;
 }
@@ -330,7 +321,8 @@ static int get(scene_file_t *f, scene_pin_t *pin, scene_error_t *err) {
     return cached > 0 ? 0 : -1;
   if (g_want) {
     *g_want = *f;
-    return fail(err, SCENE_DEFERRED, f->path, "%s: \"%.64s\" is being read", f->path, f->file);
+    return proto_error_set(err, SCENE_DEFERRED, f->path, "%s: \"%.64s\" is being read", f->path,
+                           f->file);
   }
   return scene_file_load(f, pin, err);
 }

@@ -8,6 +8,8 @@
 
 #include <cjson/cJSON.h>
 
+#include "proto_error.h"
+
 typedef enum {
   SCH_NUMBER,  /* Finite double within [min, max]. */
   SCH_INTEGER, /* Integral double within [min, max]. */
@@ -46,10 +48,14 @@ typedef struct sch_field {
   unsigned flags;
 } sch_field_t;
 
-typedef struct sch_error {
-  char path[256];    /* Dotted path of the offending value ("objects.2.scale"). */
-  char message[256]; /* What was wrong, naming the path. */
-} sch_error_t;
+/* A validation error: the carrier of proto_error.h, its code PROTO_E_INVALID_PARAMS, its path
+ * the dotted path of the offending value ("objects.2.scale") and its message naming that path. */
+typedef proto_error_t sch_error_t;
+
+/* Fills 'err' as the engine does for an invalid value: code PROTO_E_INVALID_PARAMS, 'path', and
+ * a message "path: ..." from 'fmt'. NULL is fine. Returns -1. */
+int sch_error_set(sch_error_t *err, const char *path, const char *fmt, ...)
+    __attribute__((format(printf, 3, 4)));
 
 /*
  * Validates 'v' against 'f' in place: fills absent members that have defaults, normalises unit

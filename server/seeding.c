@@ -108,13 +108,6 @@ static struct seed_entry *find(seed_kind_t kind, const scene_cloud_t *c, const c
   return NULL;
 }
 
-static int fail(scene_error_t *err, int code, const char *path, const char *msg) {
-  err->code = code;
-  snprintf(err->path, sizeof err->path, "%s", path);
-  snprintf(err->message, sizeof err->message, "%s", msg);
-  return -1;
-}
-
 int cloud_seed_get(const scene_cloud_t *c, cloud_cells_t **cells, density_grid_t **density,
                    scene_error_t *err) {
   pthread_mutex_lock(&g_lock);
@@ -131,12 +124,12 @@ int cloud_seed_get(const scene_cloud_t *c, cloud_cells_t **cells, density_grid_t
     g_want->kind = SEED_CLOUD;
     g_want->cloud = *c;
     snprintf(msg, sizeof msg, "cloud: %ux%ux%u cells are being seeded", c->n[0], c->n[1], c->n[2]);
-    return fail(err, SCENE_DEFERRED_SEED, "cloud", msg);
+    return proto_error_set(err, SCENE_DEFERRED_SEED, "cloud", "%s", msg);
   }
   if (seed(c, cells, density) == 0)
     return 0;
   snprintf(msg, sizeof msg, "out of memory for a %ux%ux%u cloud", c->n[0], c->n[1], c->n[2]);
-  return fail(err, PROTO_E_INTERNAL, "cloud", msg);
+  return proto_error_set(err, PROTO_E_INTERNAL, "cloud", "%s", msg);
 }
 
 /* The settings the particles of 'doc' are laid out from, as a document scene_particles_of
@@ -167,7 +160,7 @@ int particles_seed_get(const cJSON *doc, particles_t **out, scene_error_t *err) 
   char *key = settings ? cJSON_PrintUnformatted(settings) : NULL;
   if (!key) {
     cJSON_Delete(settings);
-    return fail(err, PROTO_E_INTERNAL, "fluid.initial", "out of memory");
+    return proto_error_set(err, PROTO_E_INTERNAL, "fluid.initial", "out of memory");
   }
   pthread_mutex_lock(&g_lock);
   struct seed_entry *e = find(SEED_PARTICLES, NULL, key);
@@ -182,12 +175,13 @@ int particles_seed_get(const cJSON *doc, particles_t **out, scene_error_t *err) 
   if (g_want && !g_skip[SEED_PARTICLES]) {
     g_want->kind = SEED_PARTICLES;
     g_want->fluid = settings;
-    return fail(err, SCENE_DEFERRED_SEED, "fluid.initial", "fluid.initial: being laid out");
+    return proto_error_set(err, SCENE_DEFERRED_SEED, "fluid.initial",
+                           "fluid.initial: being laid out");
   }
   cJSON_Delete(settings);
   if (scene_particles_of(doc, out) == 0)
     return 0;
-  return fail(err, PROTO_E_INTERNAL, "fluid.initial", "out of memory");
+  return proto_error_set(err, PROTO_E_INTERNAL, "fluid.initial", "out of memory");
 }
 
 int seeding_make(seed_want_t *want, seed_pin_t **pin) {
