@@ -11,6 +11,7 @@
 #include "schema.h"
 
 #include <float.h>
+#include <stdint.h>
 #include <math.h>
 #include <stdarg.h>
 #include <stdio.h>
@@ -566,4 +567,102 @@ const sch_field_t *sch_path_field(const sch_field_t *root, const char *path) {
     p = dot + 1;
   }
   return NULL;
+}
+
+int sch_enum_index(const sch_field_t *f, const cJSON *v) {
+  if (!f || f->type != SCH_ENUM || !cJSON_IsString(v) || !v->valuestring)
+    return -1;
+  for (int i = 0; f->enum_values && f->enum_values[i]; i++)
+    if (strcmp(v->valuestring, f->enum_values[i]) == 0)
+      return i;
+  return -1;
+}
+
+int sch_member_enum(const sch_field_t *f, const cJSON *obj, const char *name) {
+  for (const sch_field_t *m = f ? f->fields : NULL; m && m->name; m++)
+    if (strcmp(m->name, name) == 0)
+      return sch_enum_index(m, cJSON_GetObjectItemCaseSensitive(obj, name));
+  return -1;
+}
+
+cJSON *sch_member(const cJSON *obj, const char *name) {
+  return cJSON_GetObjectItemCaseSensitive(obj, name);
+}
+
+void sch_vec3d(const cJSON *v, double out[3]) {
+  int i = 0;
+  out[0] = out[1] = out[2] = 0;
+  for (const cJSON *it = v ? v->child : NULL; it && i < 3; it = it->next)
+    out[i++] = it->valuedouble;
+}
+
+void sch_vec3f(const cJSON *v, float out[3]) {
+  double d[3];
+  sch_vec3d(v, d);
+  for (int i = 0; i < 3; i++)
+    out[i] = (float)d[i];
+}
+
+/* Stores the validated value 'v' of field 'f' at 'at' as f->store says. */
+static void store_value(const sch_field_t *f, const cJSON *v, char *at) {
+  double d = v->valuedouble, c[3];
+  switch (f->store) {
+  case SCH_STORE_NONE:
+  case SCH_STORE_MEMBERS:
+    break;
+  case SCH_STORE_F32:
+    *(float *)(void *)at = (float)d;
+    break;
+  case SCH_STORE_F64:
+    *(double *)(void *)at = d;
+    break;
+  case SCH_STORE_INT:
+    *(int *)(void *)at = (int)d;
+    break;
+  case SCH_STORE_U32:
+    *(uint32_t *)(void *)at = (uint32_t)d;
+    break;
+  case SCH_STORE_U64:
+    *(uint64_t *)(void *)at = (uint64_t)d;
+    break;
+  case SCH_STORE_BOOL:
+    *(int *)(void *)at = cJSON_IsTrue(v);
+    break;
+  case SCH_STORE_ENUM: {
+    int i = sch_enum_index(f, v);
+    *(int *)(void *)at = i >= 0 && f->enum_codes ? f->enum_codes[i] : i < 0 ? 0 : i;
+    break;
+  }
+  case SCH_STORE_VEC3F:
+  case SCH_STORE_UNIT3F: {
+    sch_vec3d(v, c);
+    double len = f->store == SCH_STORE_UNIT3F ? sqrt(c[0] * c[0] + c[1] * c[1] + c[2] * c[2]) : 1;
+    for (int k = 0; k < 3; k++)
+      ((float *)(void *)at)[k] = (float)(f->store == SCH_STORE_UNIT3F ? c[k] / len : c[k]);
+    break;
+  }
+  case SCH_STORE_VEC3D:
+    sch_vec3d(v, (double *)(void *)at);
+    break;
+  case SCH_STORE_VEC3U32:
+    sch_vec3d(v, c);
+    for (int k = 0; k < 3; k++)
+      ((uint32_t *)(void *)at)[k] = (uint32_t)c[k];
+    break;
+  }
+}
+
+void sch_compile(const sch_field_t *f, const cJSON *v, void *base) {
+  for (const sch_field_t *m = f->fields; m && m->name; m++) {
+    if (m->store == SCH_STORE_NONE)
+      continue;
+    const cJSON *mv = cJSON_GetObjectItemCaseSensitive(v, m->name);
+    if (!mv)
+      continue;
+    char *at = (char *)base + m->offset;
+    if (m->store == SCH_STORE_MEMBERS)
+      sch_compile(m, mv, at);
+    else
+      store_value(m, mv, at);
+  }
 }

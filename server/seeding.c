@@ -1,7 +1,7 @@
 /*
  * Fresh state a commit seeds (seeding.h): the cloud's seeding and its steps, and the cache that
  * carries seedings from the thread pool to the request's retry. The particles' lattice is laid
- * out by scene.c (scene_particles_of), with the document's checks beside it.
+ * out by seeding_particles.c.
  */
 #include "seeding.h"
 
@@ -109,7 +109,7 @@ static struct seed_entry *find(seed_kind_t kind, const scene_cloud_t *c, const c
 }
 
 int cloud_seed_get(const scene_cloud_t *c, cloud_cells_t **cells, density_grid_t **density,
-                   scene_error_t *err) {
+                   proto_error_t *err) {
   pthread_mutex_lock(&g_lock);
   struct seed_entry *e = find(SEED_CLOUD, c, NULL);
   if (e) {
@@ -132,7 +132,7 @@ int cloud_seed_get(const scene_cloud_t *c, cloud_cells_t **cells, density_grid_t
   return proto_error_set(err, PROTO_E_INTERNAL, "cloud", "%s", msg);
 }
 
-/* The settings the particles of 'doc' are laid out from, as a document scene_particles_of
+/* The settings the particles of 'doc' are laid out from, as a document seeding_particles_of
  * reads: fluid.initial, fluid.h (the default spacing), fluid.bounds and the objects. NULL when
  * out of memory. */
 static cJSON *fluid_settings(const cJSON *doc) {
@@ -155,7 +155,7 @@ static cJSON *fluid_settings(const cJSON *doc) {
   return s;
 }
 
-int particles_seed_get(const cJSON *doc, particles_t **out, scene_error_t *err) {
+int particles_seed_get(const cJSON *doc, particles_t **out, proto_error_t *err) {
   cJSON *settings = fluid_settings(doc);
   char *key = settings ? cJSON_PrintUnformatted(settings) : NULL;
   if (!key) {
@@ -179,7 +179,7 @@ int particles_seed_get(const cJSON *doc, particles_t **out, scene_error_t *err) 
                            "fluid.initial: being laid out");
   }
   cJSON_Delete(settings);
-  if (scene_particles_of(doc, out) == 0)
+  if (seeding_particles_of(doc, out) == 0)
     return 0;
   return proto_error_set(err, PROTO_E_INTERNAL, "fluid.initial", "out of memory");
 }
@@ -193,7 +193,7 @@ int seeding_make(seed_want_t *want, seed_pin_t **pin) {
     ok = seed(&want->cloud, &made->cells, &made->density) == 0;
   } else if (ok) {
     made->fluid = cJSON_PrintUnformatted(want->fluid);
-    ok = made->fluid && scene_particles_of(want->fluid, &made->particles) == 0;
+    ok = made->fluid && seeding_particles_of(want->fluid, &made->particles) == 0;
   }
   if (!ok) {
     seed_want_clear(want);
