@@ -11,6 +11,7 @@
 #include <stdint.h>
 
 #include "render_scene.h"
+#include "scene_files.h"
 #include "scene_schema.h"
 #include "schema.h"
 #include "seeding.h"
@@ -79,10 +80,6 @@ typedef proto_error_t scene_error_t;
  * field.
  */
 int scene_check_camera(const cJSON *camera, scene_error_t *err);
-
-/* Sets the directory relative to which mesh files are resolved (the data directory). Paths
- * that would leave it are refused. NULL refuses every mesh file. */
-void scene_set_data_dir(const char *dir);
 
 /* Sets the largest side of a volume file's grid (the cloud_side limit); 256 until set. */
 void scene_set_volume_limit(uint32_t side);

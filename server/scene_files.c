@@ -37,7 +37,7 @@ typedef struct file_entry {
    * its own words, however long its retry takes to come (scene.load reads its snapshot again
    * first). */
   int failed;
-  scene_error_t fault;
+  proto_error_t fault;
   int pins;     /* Guarded by g_lock. */
   int unlinked; /* Out of the list (its file changed) but still pinned: freed by the last pin. */
   struct file_entry *next;
@@ -100,7 +100,7 @@ static int same_stat(const file_entry_t *e, const struct stat *st) {
  * with 'err' set when the read of this very file failed just before, for the field 'f' names.
  * An entry for the same file whose stat changed is dropped: snapshots keep the old contents,
  * new ones read the new file. */
-static int lookup(const scene_file_t *f, scene_pin_t *pin, scene_error_t *err) {
+static int lookup(const scene_file_t *f, scene_pin_t *pin, proto_error_t *err) {
   int hit = 0;
   pthread_mutex_lock(&g_lock);
   for (file_entry_t **pp = &g_files; *pp; pp = &(*pp)->next) {
@@ -131,7 +131,7 @@ static int lookup(const scene_file_t *f, scene_pin_t *pin, scene_error_t *err) {
 
 /* Caches what 'pin' holds as the contents of 'f', unless another thread cached the same file
  * meanwhile: then 'pin' is switched to that copy. Out of memory leaves it uncached. */
-static void insert(const scene_file_t *f, scene_pin_t *pin, const scene_error_t *fault) {
+static void insert(const scene_file_t *f, scene_pin_t *pin, const proto_error_t *fault) {
   pthread_mutex_lock(&g_lock);
   for (file_entry_t *e = g_files; e; e = e->next)
     if (same_key(e, f) && same_stat(e, &f->st) && !e->failed && !fault) {
@@ -184,7 +184,7 @@ void scene_pin_release(scene_pin_t *pin) {
 /* The densities of grid file 'f', open at 'fd' with stat 'st': u8 (byte / 255) or f32
  * (little-endian, finite and non-negative). NULL with 'err' set on failure. */
 static density_grid_t *grid_read(const scene_file_t *f, int fd, const struct stat *st,
-                                 scene_error_t *err) {
+                                 proto_error_t *err) {
   const char *p = f->path;
   size_t n = (size_t)f->dims[0] * f->dims[1] * f->dims[2], want = n * (f->u8 ? 1 : 4);
   if ((uint64_t)st->st_size != want) {
@@ -238,7 +238,7 @@ static density_grid_t *grid_read(const scene_file_t *f, int fd, const struct sta
 }
 
 /* The mesh in the OBJ file 'f', open at 'fd' with stat 'st'. NULL with 'err' set. */
-static mesh_t *mesh_read(const scene_file_t *f, int fd, const struct stat *st, scene_error_t *err) {
+static mesh_t *mesh_read(const scene_file_t *f, int fd, const struct stat *st, proto_error_t *err) {
   if ((uint64_t)st->st_size > MESH_OBJ_MAX_BYTES) {
     proto_error_set(err, PROTO_E_INVALID_PARAMS, f->path,
                     "%s: \"%.64s\" is %lld bytes, over the limit of %u", f->path, f->file,
@@ -261,8 +261,8 @@ static mesh_t *mesh_read(const scene_file_t *f, int fd, const struct stat *st, s
   return m;
 }
 
-int scene_file_load(const scene_file_t *f, scene_pin_t *pin, scene_error_t *err) {
-  scene_error_t local;
+int scene_file_load(const scene_file_t *f, scene_pin_t *pin, proto_error_t *err) {
+  proto_error_t local;
   if (!err)
     err = &local;
   pin->mesh = NULL;
@@ -293,7 +293,7 @@ int scene_file_load(const scene_file_t *f, scene_pin_t *pin, scene_error_t *err)
 /* Finds the client's 'file' for field 'path' and fills 'f' (a regular file under the data
  * directory). The stat comes from a descriptor opened beneath the data directory with O_PATH,
  * which reads nothing and so cannot block on a FIFO. */
-static int resolve(const char *file, const char *path, scene_file_t *f, scene_error_t *err) {
+static int resolve(const char *file, const char *path, scene_file_t *f, proto_error_t *err) {
   char why[256];
   snprintf(f->file, sizeof f->file, "%s", file);
   snprintf(f->path, sizeof f->path, "%s", path);
@@ -315,7 +315,7 @@ static int resolve(const char *file, const char *path, scene_file_t *f, scene_er
 }
 
 /* The contents of 'f' into 'pin': cached, read now, or (deferral armed) recorded. */
-static int get(scene_file_t *f, scene_pin_t *pin, scene_error_t *err) {
+static int get(scene_file_t *f, scene_pin_t *pin, proto_error_t *err) {
   int cached = lookup(f, pin, err);
   if (cached)
     return cached > 0 ? 0 : -1;
@@ -327,7 +327,7 @@ static int get(scene_file_t *f, scene_pin_t *pin, scene_error_t *err) {
   return scene_file_load(f, pin, err);
 }
 
-mesh_t *scene_mesh_get(const char *file, const char *path, scene_error_t *err) {
+mesh_t *scene_mesh_get(const char *file, const char *path, proto_error_t *err) {
   scene_file_t f = {.grid = 0};
   scene_pin_t pin = {0};
   if (resolve(file, path, &f, err) != 0 || get(&f, &pin, err) != 0) {
@@ -338,7 +338,7 @@ mesh_t *scene_mesh_get(const char *file, const char *path, scene_error_t *err) {
 }
 
 density_grid_t *scene_grid_get(const char *file, int index, const uint32_t dims[3], int u8,
-                               scene_error_t *err) {
+                               proto_error_t *err) {
   char p[64];
   snprintf(p, sizeof p, "volumes.%d.file", index);
   scene_file_t f = {.grid = 1, .dims = {dims[0], dims[1], dims[2]}, .u8 = u8};
