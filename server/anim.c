@@ -24,19 +24,6 @@ static cJSON *member(const cJSON *obj, const char *name) {
   return cJSON_GetObjectItemCaseSensitive(obj, name);
 }
 
-/* Fills 'err' with 'path' and a message that starts with it, as the schema engine does. */
-__attribute__((format(printf, 3, 4))) static int fail(sch_error_t *err, const char *path,
-                                                      const char *fmt, ...) {
-  char what[200];
-  va_list ap;
-  va_start(ap, fmt);
-  vsnprintf(what, sizeof what, fmt, ap);
-  va_end(ap);
-  snprintf(err->path, sizeof err->path, "%s", path);
-  snprintf(err->message, sizeof err->message, "%s: %s", path, what);
-  return -1;
-}
-
 /* The description of the member 'name' among 'fields', or NULL. */
 static const sch_field_t *field_named(const sch_field_t *fields, const char *name) {
   for (const sch_field_t *f = fields; f && f->name; f++)
@@ -180,13 +167,13 @@ static int check_target(cJSON *e, const sch_field_t *f, const char *path, sch_er
   char sub[256];
   if (!member(e, "rate")) {
     snprintf(sub, sizeof sub, "%s.rate", path);
-    return fail(err, sub, "required member is missing (a target is approached at a rate)");
+    return sch_error_set(err, sub, "required member is missing (a target is approached at a rate)");
   }
   static const char *const keys_only[] = {"interp", "loop"};
   for (int i = 0; i < 2; i++)
     if (member(e, keys_only[i])) {
       snprintf(sub, sizeof sub, "%s.%s", path, keys_only[i]);
-      return fail(err, sub, "applies to keyframes only, not to a target");
+      return sch_error_set(err, sub, "applies to keyframes only, not to a target");
     }
   snprintf(sub, sizeof sub, "%s.target", path);
   return sch_validate(f, member(e, "target"), sub, err);
@@ -197,12 +184,12 @@ static int check_keys(cJSON *e, const sch_field_t *f, const char *path, sch_erro
   char sub[256];
   if (member(e, "rate")) {
     snprintf(sub, sizeof sub, "%s.rate", path);
-    return fail(err, sub, "applies to a target only, not to keyframes");
+    return sch_error_set(err, sub, "applies to a target only, not to keyframes");
   }
   cJSON *keys = member(e, "keys");
   if (!keys->child) {
     snprintf(sub, sizeof sub, "%s.keys", path);
-    return fail(err, sub, "needs at least one key");
+    return sch_error_set(err, sub, "needs at least one key");
   }
   int k = 0;
   double prev = 0;
@@ -210,7 +197,7 @@ static int check_keys(cJSON *e, const sch_field_t *f, const char *path, sch_erro
     double t = member(key, "t")->valuedouble;
     if (k > 0 && !(t > prev)) {
       snprintf(sub, sizeof sub, "%s.keys.%d.t", path, k);
-      return fail(err, sub, "%g must be greater than the previous key's t (%g)", t, prev);
+      return sch_error_set(err, sub, "%g must be greater than the previous key's t (%g)", t, prev);
     }
     prev = t;
     snprintf(sub, sizeof sub, "%s.keys.%d.value", path, k);
@@ -224,11 +211,11 @@ static int check_keys(cJSON *e, const sch_field_t *f, const char *path, sch_erro
     loop = cJSON_CreateFalse();
   if (!member(e, "interp") && !cJSON_AddStringToObject(e, "interp", "linear")) {
     cJSON_Delete(loop);
-    return fail(err, path, "out of memory");
+    return sch_error_set(err, path, "out of memory");
   }
   if (!loop || !cJSON_AddItemToObject(e, "loop", loop)) {
     cJSON_Delete(loop);
-    return fail(err, path, "out of memory");
+    return sch_error_set(err, path, "out of memory");
   }
   return 0;
 }
@@ -243,18 +230,20 @@ int anim_check(cJSON *obj, const sch_field_t *fields, const char *prefix, sch_er
     const char *name = member(e, "field")->valuestring;
     const sch_field_t *f = field_named(fields, name);
     if (!f || (f->type != SCH_NUMBER && f->type != SCH_VEC3))
-      return fail(err, sub, "\"%.40s\" is not a numeric field", name);
+      return sch_error_set(err, sub, "\"%.40s\" is not a numeric field", name);
     int j = 0;
     for (const cJSON *p = anim->child; p != e; p = p->next, j++)
       if (strcmp(member(p, "field")->valuestring, name) == 0)
-        return fail(err, sub, "\"%s\" is already animated by %s.animate.%d", name, prefix, j);
+        return sch_error_set(err, sub, "\"%s\" is already animated by %s.animate.%d", name, prefix,
+                             j);
     int has_target = member(e, "target") != NULL, has_keys = member(e, "keys") != NULL;
     if (has_target && has_keys) {
       snprintf(sub, sizeof sub, "%s.keys", path);
-      return fail(err, sub, "an animation has either a target and a rate, or keys, not both");
+      return sch_error_set(err, sub,
+                           "an animation has either a target and a rate, or keys, not both");
     }
     if (!has_target && !has_keys)
-      return fail(err, path, "needs either a target and a rate, or keys");
+      return sch_error_set(err, path, "needs either a target and a rate, or keys");
     int rc = has_target ? check_target(e, f, path, err) : check_keys(e, f, path, err);
     if (rc != 0)
       return -1;

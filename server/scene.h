@@ -11,7 +11,10 @@
 #include <stdint.h>
 
 #include "render_scene.h"
+#include "scene_files.h"
+#include "scene_schema.h"
 #include "schema.h"
+#include "seeding.h"
 #include "sim_cloud.h"
 
 /*
@@ -31,17 +34,6 @@ cloud_link_t *cloud_link_new(void);
 cloud_link_t *cloud_link_ref(cloud_link_t *l);
 /* Drops a reference; NULL is fine. */
 void cloud_link_unref(cloud_link_t *l);
-
-/* The cloud settings of a validated document, in cells (ellipsoids converted). */
-typedef struct scene_cloud {
-  cloud_params_t params;
-  uint32_t n[3];
-  double radius;            /* Metaball radius in cells, 0 resolved. */
-  float keep;               /* smoothing */
-  unsigned steps_per_frame; /* Automaton steps per simulation step. */
-  double init_hum, init_act;
-  unsigned init_steps; /* Automaton steps taken at seeding. */
-} scene_cloud_t;
 
 typedef struct scene {
   char name[64];
@@ -76,11 +68,10 @@ typedef struct scene {
   } clock;
 } scene_t;
 
-typedef struct scene_error {
-  int code;       /* PROTO_E_INVALID_PARAMS, PROTO_E_NOT_FOUND or PROTO_E_LIMIT. */
-  char path[256]; /* Offending dotted path, "" when none. */
-  char message[256];
-} scene_error_t;
+/* A scene's error: the carrier of proto_error.h, its code PROTO_E_INVALID_PARAMS,
+ * PROTO_E_NOT_FOUND, PROTO_E_LIMIT or PROTO_E_INTERNAL, or a deferral (SCENE_DEFERRED,
+ * SCENE_DEFERRED_SEED). */
+typedef proto_error_t scene_error_t;
 
 /*
  * The camera's checks across its fields, on a camera that passed the schema: target away from
@@ -89,13 +80,6 @@ typedef struct scene_error {
  * field.
  */
 int scene_check_camera(const cJSON *camera, scene_error_t *err);
-
-/* The schema of a whole scene document (SPEC §4), for validation and rpc.discover. */
-extern const sch_field_t scene_schema;
-
-/* Sets the directory relative to which mesh files are resolved (the data directory). Paths
- * that would leave it are refused. NULL refuses every mesh file. */
-void scene_set_data_dir(const char *dir);
 
 /* Sets the largest side of a volume file's grid (the cloud_side limit); 256 until set. */
 void scene_set_volume_limit(uint32_t side);
@@ -139,14 +123,6 @@ int scene_patch(scene_t *s, const cJSON *patch, scene_error_t *err);
 /* Sets one value at a dotted path ("objects.0.color", "camera.fov_y"). The parent must exist;
  * an array index may be the array's length to append. Returns 0 or -1 with 'err'. */
 int scene_set_path(scene_t *s, const char *path, const cJSON *value, scene_error_t *err);
-
-/*
- * The particles of fluid.initial in a checked document (only its "fluid" and "objects" are
- * read), in 'out' (NULL when there are none): each block's lattice, less the points inside an
- * opaque object the fluid collides with (which would burst out of it). Any thread. Returns 0,
- * or -1 on OOM.
- */
-int scene_particles_of(const cJSON *doc, particles_t **out);
 
 /* Replaces the whole document. Returns 0 or -1 with 'err'. */
 int scene_replace(scene_t *s, const cJSON *doc, scene_error_t *err);

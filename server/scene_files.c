@@ -37,7 +37,7 @@ typedef struct file_entry {
    * its own words, however long its retry takes to come (scene.load reads its snapshot again
    * first). */
   int failed;
-  scene_error_t fault;
+  proto_error_t fault;
   int pins;     /* Guarded by g_lock. */
   int unlinked; /* Out of the list (its file changed) but still pinned: freed by the last pin. */
   struct file_entry *next;
@@ -46,18 +46,6 @@ typedef struct file_entry {
 static pthread_mutex_t g_lock = PTHREAD_MUTEX_INITIALIZER;
 static file_entry_t *g_files; /* Guarded by g_lock. */
 static scene_file_t *g_want;  /* Armed deferral (loop thread only), or NULL. */
-
-static int fail(scene_error_t *err, int code, const char *path, const char *fmt, ...) {
-  if (!err)
-    return -1;
-  err->code = code;
-  snprintf(err->path, sizeof err->path, "%s", path);
-  va_list ap;
-  va_start(ap, fmt);
-  vsnprintf(err->message, sizeof err->message, fmt, ap);
-  va_end(ap);
-  return -1;
-}
 
 /* The data directory is opened here, once, for every file a request names (snapshots and job
  * output too): scene_set_data_dir is what start-up calls with it. */
@@ -112,7 +100,7 @@ static int same_stat(const file_entry_t *e, const struct stat *st) {
  * with 'err' set when the read of this very file failed just before, for the field 'f' names.
  * An entry for the same file whose stat changed is dropped: snapshots keep the old contents,
  * new ones read the new file. */
-static int lookup(const scene_file_t *f, scene_pin_t *pin, scene_error_t *err) {
+static int lookup(const scene_file_t *f, scene_pin_t *pin, proto_error_t *err) {
   int hit = 0;
   pthread_mutex_lock(&g_lock);
   for (file_entry_t **pp = &g_files; *pp; pp = &(*pp)->next) {
@@ -143,7 +131,7 @@ static int lookup(const scene_file_t *f, scene_pin_t *pin, scene_error_t *err) {
 
 /* Caches what 'pin' holds as the contents of 'f', unless another thread cached the same file
  * meanwhile: then 'pin' is switched to that copy. Out of memory leaves it uncached. */
-static void insert(const scene_file_t *f, scene_pin_t *pin, const scene_error_t *fault) {
+static void insert(const scene_file_t *f, scene_pin_t *pin, const proto_error_t *fault) {
   pthread_mutex_lock(&g_lock);
   for (file_entry_t *e = g_files; e; e = e->next)
     if (same_key(e, f) && same_stat(e, &f->st) && !e->failed && !fault) {
@@ -196,13 +184,14 @@ void scene_pin_release(scene_pin_t *pin) {
 /* The densities of grid file 'f', open at 'fd' with stat 'st': u8 (byte / 255) or f32
  * (little-endian, finite and non-negative). NULL with 'err' set on failure. */
 static density_grid_t *grid_read(const scene_file_t *f, int fd, const struct stat *st,
-                                 scene_error_t *err) {
+                                 proto_error_t *err) {
   const char *p = f->path;
   size_t n = (size_t)f->dims[0] * f->dims[1] * f->dims[2], want = n * (f->u8 ? 1 : 4);
   if ((uint64_t)st->st_size != want) {
-    fail(err, PROTO_E_INVALID_PARAMS, p,
-         "%s: \"%.64s\" holds %lld bytes, but dims %ux%ux%u of %s need %zu", p, f->file,
-         (long long)st->st_size, f->dims[0], f->dims[1], f->dims[2], f->u8 ? "u8" : "f32", want);
+    proto_error_set(err, PROTO_E_INVALID_PARAMS, p,
+                    "%s: \"%.64s\" holds %lld bytes, but dims %ux%ux%u of %s need %zu", p, f->file,
+                    (long long)st->st_size, f->dims[0], f->dims[1], f->dims[2],
+                    f->u8 ? "u8" : "f32", want);
     return NULL;
   }
   density_grid_t *g = density_grid_new(f->dims);
@@ -211,14 +200,14 @@ static density_grid_t *grid_read(const scene_file_t *f, int fd, const struct sta
   if (!g || (!raw && errno == ENOMEM)) {
     density_grid_unref(g);
     free(raw);
-    fail(err, PROTO_E_INTERNAL, p, "%s: out of memory for a %zu-voxel grid", p, n);
+    proto_error_set(err, PROTO_E_INTERNAL, p, "%s: out of memory for a %zu-voxel grid", p, n);
     return NULL;
   }
   if (!raw || got != want) {
     density_grid_unref(g);
     free(raw);
-    fail(err, PROTO_E_INVALID_PARAMS, p, "%s: cannot read \"%.64s\"%s", p, f->file,
-         raw ? ": it was cut short while read" : "");
+    proto_error_set(err, PROTO_E_INVALID_PARAMS, p, "%s: cannot read \"%.64s\"%s", p, f->file,
+                    raw ? ": it was cut short while read" : "");
     return NULL;
   }
   for (size_t i = 0; i < n; i++) {
@@ -234,10 +223,11 @@ static density_grid_t *grid_read(const scene_file_t *f, int fd, const struct sta
         size_t z = i / f->dims[0] / f->dims[1];
         density_grid_unref(g);
         free(raw);
-        fail(err, PROTO_E_INVALID_PARAMS, p,
-             "%s: \"%.64s\" has density %g at voxel (%zu, %zu, %zu); densities must be finite "
-             "and non-negative",
-             p, f->file, (double)v, x, y, z);
+        proto_error_set(
+            err, PROTO_E_INVALID_PARAMS, p,
+            "%s: \"%.64s\" has density %g at voxel (%zu, %zu, %zu); densities must be finite "
+            "and non-negative",
+            p, f->file, (double)v, x, y, z);
         return NULL;
       }
     }
@@ -248,30 +238,31 @@ static density_grid_t *grid_read(const scene_file_t *f, int fd, const struct sta
 }
 
 /* The mesh in the OBJ file 'f', open at 'fd' with stat 'st'. NULL with 'err' set. */
-static mesh_t *mesh_read(const scene_file_t *f, int fd, const struct stat *st, scene_error_t *err) {
+static mesh_t *mesh_read(const scene_file_t *f, int fd, const struct stat *st, proto_error_t *err) {
   if ((uint64_t)st->st_size > MESH_OBJ_MAX_BYTES) {
-    fail(err, PROTO_E_INVALID_PARAMS, f->path, "%s: \"%.64s\" is %lld bytes, over the limit of %u",
-         f->path, f->file, (long long)st->st_size, MESH_OBJ_MAX_BYTES);
+    proto_error_set(err, PROTO_E_INVALID_PARAMS, f->path,
+                    "%s: \"%.64s\" is %lld bytes, over the limit of %u", f->path, f->file,
+                    (long long)st->st_size, MESH_OBJ_MAX_BYTES);
     return NULL;
   }
   size_t len;
   char *text = datapath_fd_read(fd, (size_t)st->st_size, &len);
   if (!text) {
-    fail(err, errno == ENOMEM ? PROTO_E_INTERNAL : PROTO_E_INVALID_PARAMS, f->path,
-         "%s: cannot read \"%.64s\": %s", f->path, f->file, strerror(errno));
+    proto_error_set(err, errno == ENOMEM ? PROTO_E_INTERNAL : PROTO_E_INVALID_PARAMS, f->path,
+                    "%s: cannot read \"%.64s\": %s", f->path, f->file, strerror(errno));
     return NULL;
   }
   char why[256] = "";
   mesh_t *m = mesh_parse_obj(text, len, f->file, why, sizeof why);
   free(text);
   if (!m)
-    fail(err, PROTO_E_INVALID_PARAMS, f->path, "%s: %s", f->path,
-         why[0] ? why : "cannot load the mesh");
+    proto_error_set(err, PROTO_E_INVALID_PARAMS, f->path, "%s: %s", f->path,
+                    why[0] ? why : "cannot load the mesh");
   return m;
 }
 
-int scene_file_load(const scene_file_t *f, scene_pin_t *pin, scene_error_t *err) {
-  scene_error_t local;
+int scene_file_load(const scene_file_t *f, scene_pin_t *pin, proto_error_t *err) {
+  proto_error_t local;
   if (!err)
     err = &local;
   pin->mesh = NULL;
@@ -285,8 +276,8 @@ int scene_file_load(const scene_file_t *f, scene_pin_t *pin, scene_error_t *err)
   if (fd < 0) {
     char why[256];
     int code = datapath_error(errno, f->file, 0, 0, why, sizeof why);
-    fail(err, code == PROTO_E_INTERNAL ? code : PROTO_E_INVALID_PARAMS, f->path, "%s: %s", f->path,
-         why);
+    proto_error_set(err, code == PROTO_E_INTERNAL ? code : PROTO_E_INVALID_PARAMS, f->path,
+                    "%s: %s", f->path, why);
     now.st = f->st;
   } else if (f->grid) {
     ok = (pin->grid = grid_read(f, fd, &now.st, err)) != NULL;
@@ -302,13 +293,13 @@ int scene_file_load(const scene_file_t *f, scene_pin_t *pin, scene_error_t *err)
 /* Finds the client's 'file' for field 'path' and fills 'f' (a regular file under the data
  * directory). The stat comes from a descriptor opened beneath the data directory with O_PATH,
  * which reads nothing and so cannot block on a FIFO. */
-static int resolve(const char *file, const char *path, scene_file_t *f, scene_error_t *err) {
+static int resolve(const char *file, const char *path, scene_file_t *f, proto_error_t *err) {
   char why[256];
   snprintf(f->file, sizeof f->file, "%s", file);
   snprintf(f->path, sizeof f->path, "%s", path);
   snprintf(f->real, sizeof f->real, "%s", file);
   if (datapath_check(file, why, sizeof why) != 0)
-    return fail(err, PROTO_E_INVALID_PARAMS, path, "%s: %s", path, why);
+    return proto_error_set(err, PROTO_E_INVALID_PARAMS, path, "%s: %s", path, why);
   int fd = datapath_open(file, O_PATH, 0);
   int e = fd < 0 || fstat(fd, &f->st) != 0 ? errno : 0;
   if (fd >= 0)
@@ -317,25 +308,26 @@ static int resolve(const char *file, const char *path, scene_file_t *f, scene_er
     e = S_ISDIR(f->st.st_mode) ? EISDIR : S_ISLNK(f->st.st_mode) ? ELOOP : ENODEV;
   if (e) {
     int code = datapath_error(e, file, 0, 0, why, sizeof why);
-    return fail(err, code == PROTO_E_INTERNAL ? code : PROTO_E_INVALID_PARAMS, path, "%s: %s", path,
-                why);
+    return proto_error_set(err, code == PROTO_E_INTERNAL ? code : PROTO_E_INVALID_PARAMS, path,
+                           "%s: %s", path, why);
   }
   return 0;
 }
 
 /* The contents of 'f' into 'pin': cached, read now, or (deferral armed) recorded. */
-static int get(scene_file_t *f, scene_pin_t *pin, scene_error_t *err) {
+static int get(scene_file_t *f, scene_pin_t *pin, proto_error_t *err) {
   int cached = lookup(f, pin, err);
   if (cached)
     return cached > 0 ? 0 : -1;
   if (g_want) {
     *g_want = *f;
-    return fail(err, SCENE_DEFERRED, f->path, "%s: \"%.64s\" is being read", f->path, f->file);
+    return proto_error_set(err, SCENE_DEFERRED, f->path, "%s: \"%.64s\" is being read", f->path,
+                           f->file);
   }
   return scene_file_load(f, pin, err);
 }
 
-mesh_t *scene_mesh_get(const char *file, const char *path, scene_error_t *err) {
+mesh_t *scene_mesh_get(const char *file, const char *path, proto_error_t *err) {
   scene_file_t f = {.grid = 0};
   scene_pin_t pin = {0};
   if (resolve(file, path, &f, err) != 0 || get(&f, &pin, err) != 0) {
@@ -346,7 +338,7 @@ mesh_t *scene_mesh_get(const char *file, const char *path, scene_error_t *err) {
 }
 
 density_grid_t *scene_grid_get(const char *file, int index, const uint32_t dims[3], int u8,
-                               scene_error_t *err) {
+                               proto_error_t *err) {
   char p[64];
   snprintf(p, sizeof p, "volumes.%d.file", index);
   scene_file_t f = {.grid = 1, .dims = {dims[0], dims[1], dims[2]}, .u8 = u8};

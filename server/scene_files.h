@@ -18,10 +18,10 @@
 #include <stdint.h>
 #include <sys/stat.h>
 
+#include "proto_error.h"
 #include "render_scene.h"
-#include "scene.h"
 
-/* scene_error_t.code of a change that needs a file read first (not a protocol code). */
+/* proto_error_t.code of a change that needs a file read first (not a protocol code). */
 #define SCENE_DEFERRED 1
 
 /* A file a change needs that the cache lacks: enough to read it anywhere, and to name it in
@@ -44,6 +44,10 @@ typedef struct scene_pin {
   struct file_entry *fault; /* A failed read, kept cached for the request; else NULL. */
 } scene_pin_t;
 
+/* Sets the directory relative to which mesh files are resolved (the data directory). Paths
+ * that would leave it are refused. NULL refuses every mesh file. */
+void scene_set_data_dir(const char *dir);
+
 /* Until called again with NULL, a lookup that misses fills '*want' and fails with
  * SCENE_DEFERRED instead of reading the file. Loop thread only. */
 void scene_files_defer(scene_file_t *want);
@@ -52,16 +56,16 @@ void scene_files_defer(scene_file_t *want);
  * naming the field and the fault (wrong size, bad data, unreadable); the fault is then cached,
  * pinned by 'pin' and until the next prune after its release, so a lookup of the same file for
  * the same field fails with it at once. */
-int scene_file_load(const scene_file_t *f, scene_pin_t *pin, scene_error_t *err);
+int scene_file_load(const scene_file_t *f, scene_pin_t *pin, proto_error_t *err);
 void scene_pin_release(scene_pin_t *pin);
 
 /* A counted reference to the mesh of 'file' for the object field 'path', cached or loaded.
  * NULL with 'err' set (err->code SCENE_DEFERRED while a deferral is armed and it is not
  * cached). */
-mesh_t *scene_mesh_get(const char *file, const char *path, scene_error_t *err);
+mesh_t *scene_mesh_get(const char *file, const char *path, proto_error_t *err);
 /* The same for the grid of volumes['index'].file, 'dims' voxels of u8 or f32. */
 density_grid_t *scene_grid_get(const char *file, int index, const uint32_t dims[3], int u8,
-                               scene_error_t *err);
+                               proto_error_t *err);
 
 /* Drops cached files that no snapshot or pin uses any more. */
 void scene_files_prune(void);

@@ -11,11 +11,14 @@
 #include "schema.h"
 
 #include <float.h>
+#include <stdint.h>
 #include <math.h>
 #include <stdarg.h>
 #include <stdio.h>
 #include <stdlib.h>
 #include <string.h>
+
+#include "proto.h"
 
 /* Longest path component we build; longer member names are cut in error paths only. */
 #define PATH_MAX_LEN 256
@@ -56,14 +59,9 @@ static int vfail_at(sch_error_t *err, const char *path, const char *shown, const
                     va_list ap) {
   char what[224];
   vsnprintf(what, sizeof what, fmt, ap);
-  if (err) {
-    snprintf(err->path, sizeof err->path, "%s", path);
-    if (shown[0])
-      snprintf(err->message, sizeof err->message, "%s: %s", shown, what);
-    else
-      snprintf(err->message, sizeof err->message, "%s", what);
-  }
-  return -1;
+  if (shown[0])
+    return proto_error_set(err, PROTO_E_INVALID_PARAMS, path, "%s: %s", shown, what);
+  return proto_error_set(err, PROTO_E_INVALID_PARAMS, path, "%s", what);
 }
 
 static int fail_at(sch_error_t *err, const char *path, const char *shown, const char *fmt, ...) {
@@ -74,7 +72,7 @@ static int fail_at(sch_error_t *err, const char *path, const char *shown, const 
   return -1;
 }
 
-static int fail(sch_error_t *err, const char *path, const char *fmt, ...) {
+int sch_error_set(sch_error_t *err, const char *path, const char *fmt, ...) {
   va_list ap;
   va_start(ap, fmt);
   vfail_at(err, path, path, fmt, ap);
@@ -120,11 +118,11 @@ static int check_number(const sch_field_t *f, double v, const char *path, sch_er
    * no such number may reach a kernel. */
   if (!isfinite(v)) {
     sch_format_number(a, sizeof a, v);
-    return fail(err, path, "%s is not a finite number", a);
+    return sch_error_set(err, path, "%s is not a finite number", a);
   }
   if (f->type == SCH_INTEGER && v != floor(v)) {
     sch_format_number(a, sizeof a, v);
-    return fail(err, path, "%s is not an integer", a);
+    return sch_error_set(err, path, "%s is not an integer", a);
   }
   if (!has_range(f))
     return 0;
@@ -139,14 +137,15 @@ static int check_number(const sch_field_t *f, double v, const char *path, sch_er
   /* A bound left open (a limit the server applies later, such as limits.frame_side) is not
    * printed as an infinity. */
   if (isinf(f->max) && below)
-    return fail(err, path, "%s is below the %s %s%s%s%s", a,
-                (f->flags & SCH_POSITIVE) ? "exclusive minimum" : "minimum", lo, u0, u, u1);
+    return sch_error_set(err, path, "%s is below the %s %s%s%s%s", a,
+                         (f->flags & SCH_POSITIVE) ? "exclusive minimum" : "minimum", lo, u0, u,
+                         u1);
   if (isinf(f->min) && above)
-    return fail(err, path, "%s is above the maximum %s%s%s%s", a, hi, u0, u, u1);
-  return fail(err, path, "%s is out of range %c%s, %s%c%s%s%s", a,
-              (f->flags & SCH_POSITIVE) || isinf(f->min) ? '(' : '[', lo, hi,
-              isinf(f->max) ? ')' : ']', f->unit ? " (" : "", f->unit ? f->unit : "",
-              f->unit ? ")" : "");
+    return sch_error_set(err, path, "%s is above the maximum %s%s%s%s", a, hi, u0, u, u1);
+  return sch_error_set(err, path, "%s is out of range %c%s, %s%c%s%s%s", a,
+                       (f->flags & SCH_POSITIVE) || isinf(f->min) ? '(' : '[', lo, hi,
+                       isinf(f->max) ? ')' : ']', f->unit ? " (" : "", f->unit ? f->unit : "",
+                       f->unit ? ")" : "");
 }
 
 static int validate(const sch_field_t *f, cJSON *v, const char *path, sch_error_t *err);
@@ -184,7 +183,7 @@ static cJSON *raw_default(const sch_field_t *f) {
 static cJSON *make_default(const sch_field_t *f, const char *path, sch_error_t *err) {
   cJSON *d = raw_default(f);
   if (!d) {
-    fail(err, path, "has no default value");
+    sch_error_set(err, path, "has no default value");
     return NULL;
   }
   if (validate(f, d, path, err) != 0) {
@@ -198,15 +197,16 @@ static int validate_vec3(const sch_field_t *f, cJSON *v, const char *path, sch_e
   char sub[PATH_MAX_LEN];
   double c[3];
   if (!cJSON_IsArray(v))
-    return fail(err, path, "expected an array of 3 numbers, got %s", json_kind(v));
+    return sch_error_set(err, path, "expected an array of 3 numbers, got %s", json_kind(v));
   int n = cJSON_GetArraySize(v);
   if (n != 3)
-    return fail(err, path, "expected an array of 3 numbers, got %d item%s", n, n == 1 ? "" : "s");
+    return sch_error_set(err, path, "expected an array of 3 numbers, got %d item%s", n,
+                         n == 1 ? "" : "s");
   int i = 0;
   for (cJSON *it = v->child; it; it = it->next, i++) {
     join_index(sub, sizeof sub, path, i);
     if (!cJSON_IsNumber(it))
-      return fail(err, sub, "expected a number, got %s", json_kind(it));
+      return sch_error_set(err, sub, "expected a number, got %s", json_kind(it));
     if (check_number(f, it->valuedouble, sub, err) != 0)
       return -1;
     c[i] = it->valuedouble;
@@ -220,7 +220,7 @@ static int validate_vec3(const sch_field_t *f, cJSON *v, const char *path, sch_e
   /* Scale by the largest component first so that the squares cannot overflow. */
   double m = fmax(fabs(c[0]), fmax(fabs(c[1]), fabs(c[2])));
   if (m == 0)
-    return fail(err, path, "a direction cannot be the zero vector");
+    return sch_error_set(err, path, "a direction cannot be the zero vector");
   double x = c[0] / m, y = c[1] / m, z = c[2] / m;
   double len = sqrt(x * x + y * y + z * z);
   i = 0;
@@ -234,7 +234,7 @@ static int validate_vec3(const sch_field_t *f, cJSON *v, const char *path, sch_e
 static int validate_object(const sch_field_t *f, cJSON *v, const char *path, sch_error_t *err) {
   char sub[PATH_MAX_LEN];
   if (!cJSON_IsObject(v))
-    return fail(err, path, "expected an object, got %s", json_kind(v));
+    return sch_error_set(err, path, "expected an object, got %s", json_kind(v));
   int nf = 0;
   while (f->fields && f->fields[nf].name)
     nf++;
@@ -242,12 +242,12 @@ static int validate_object(const sch_field_t *f, cJSON *v, const char *path, sch
    * back in schema order so every document reads the same way whatever built it. */
   cJSON **slot = calloc((size_t)nf + 1, sizeof *slot);
   if (!slot)
-    return fail(err, path, "out of memory");
+    return sch_error_set(err, path, "out of memory");
   int rc = -1;
   for (cJSON *m = v->child; m; m = m->next) {
     /* Only an object built in C can have a nameless member; parsed JSON never does. */
     if (!m->string) {
-      fail(err, path, "has a member without a name");
+      sch_error_set(err, path, "has a member without a name");
       goto out;
     }
     int k = 0;
@@ -263,7 +263,7 @@ static int validate_object(const sch_field_t *f, cJSON *v, const char *path, sch
       goto out;
     }
     if (slot[k]) {
-      fail(err, sub, "member appears twice");
+      sch_error_set(err, sub, "member appears twice");
       goto out;
     }
     slot[k] = m;
@@ -276,7 +276,7 @@ static int validate_object(const sch_field_t *f, cJSON *v, const char *path, sch
       continue;
     join_path(sub, sizeof sub, path, mf->name);
     if (mf->flags & SCH_REQUIRED) {
-      fail(err, sub, "required member is missing");
+      sch_error_set(err, sub, "required member is missing");
       goto out;
     }
     if (mf->flags & SCH_NO_DEFAULT || mf->type == SCH_ANY)
@@ -286,7 +286,7 @@ static int validate_object(const sch_field_t *f, cJSON *v, const char *path, sch
       goto out;
     if (!cJSON_AddItemToObject(v, mf->name, d)) {
       cJSON_Delete(d);
-      fail(err, sub, "out of memory");
+      sch_error_set(err, sub, "out of memory");
       goto out;
     }
     slot[k] = d;
@@ -299,7 +299,7 @@ static int validate_object(const sch_field_t *f, cJSON *v, const char *path, sch
     cJSON_DetachItemViaPointer(v, slot[k]);
     if (!cJSON_AddItemToObject(v, slot[k]->string, slot[k])) {
       cJSON_Delete(slot[k]);
-      fail(err, path, "out of memory");
+      sch_error_set(err, path, "out of memory");
       goto out;
     }
   }
@@ -312,10 +312,10 @@ out:
 static int validate_array(const sch_field_t *f, cJSON *v, const char *path, sch_error_t *err) {
   char sub[PATH_MAX_LEN];
   if (!cJSON_IsArray(v))
-    return fail(err, path, "expected an array, got %s", json_kind(v));
+    return sch_error_set(err, path, "expected an array, got %s", json_kind(v));
   int n = cJSON_GetArraySize(v);
   if (f->max > 0 && n > f->max)
-    return fail(err, path, "%d items is more than the limit of %.0f", n, f->max);
+    return sch_error_set(err, path, "%d items is more than the limit of %.0f", n, f->max);
   if (!f->items)
     return 0;
   int i = 0;
@@ -332,23 +332,23 @@ static int validate(const sch_field_t *f, cJSON *v, const char *path, sch_error_
   case SCH_NUMBER:
   case SCH_INTEGER:
     if (!cJSON_IsNumber(v))
-      return fail(err, path, "expected %s, got %s",
-                  f->type == SCH_INTEGER ? "an integer" : "a number", json_kind(v));
+      return sch_error_set(err, path, "expected %s, got %s",
+                           f->type == SCH_INTEGER ? "an integer" : "a number", json_kind(v));
     return check_number(f, v->valuedouble, path, err);
   case SCH_BOOL:
     if (!cJSON_IsBool(v))
-      return fail(err, path, "expected true or false, got %s", json_kind(v));
+      return sch_error_set(err, path, "expected true or false, got %s", json_kind(v));
     return 0;
   case SCH_STRING:
     if (!cJSON_IsString(v) || !v->valuestring)
-      return fail(err, path, "expected a string, got %s", json_kind(v));
+      return sch_error_set(err, path, "expected a string, got %s", json_kind(v));
     if (f->max > 0 && (double)strlen(v->valuestring) > f->max)
-      return fail(err, path, "string of %zu bytes is longer than the limit of %.0f",
-                  strlen(v->valuestring), f->max);
+      return sch_error_set(err, path, "string of %zu bytes is longer than the limit of %.0f",
+                           strlen(v->valuestring), f->max);
     return 0;
   case SCH_ENUM: {
     if (!cJSON_IsString(v) || !v->valuestring)
-      return fail(err, path, "expected a string, got %s", json_kind(v));
+      return sch_error_set(err, path, "expected a string, got %s", json_kind(v));
     char list[160] = "";
     size_t used = 0;
     for (int i = 0; f->enum_values && f->enum_values[i]; i++) {
@@ -359,7 +359,7 @@ static int validate(const sch_field_t *f, cJSON *v, const char *path, sch_error_
         used += (size_t)w;
     }
     /* Quote at most a prefix of what the client sent, so the message stays readable. */
-    return fail(err, path, "\"%.40s\" is not one of %s", v->valuestring, list);
+    return sch_error_set(err, path, "\"%.40s\" is not one of %s", v->valuestring, list);
   }
   case SCH_VEC3:
     return validate_vec3(f, v, path, err);
@@ -370,16 +370,13 @@ static int validate(const sch_field_t *f, cJSON *v, const char *path, sch_error_
   case SCH_ANY:
     return 0;
   }
-  return fail(err, path, "has an unknown schema type");
+  return sch_error_set(err, path, "has an unknown schema type");
 }
 
 int sch_validate(const sch_field_t *f, cJSON *v, const char *prefix, sch_error_t *err) {
-  if (err) {
-    err->path[0] = '\0';
-    err->message[0] = '\0';
-  }
+  proto_error_clear(err);
   if (!f || !v)
-    return fail(err, prefix ? prefix : "", "missing value");
+    return sch_error_set(err, prefix ? prefix : "", "missing value");
   return validate(f, v, prefix ? prefix : "", err);
 }
 
@@ -570,4 +567,102 @@ const sch_field_t *sch_path_field(const sch_field_t *root, const char *path) {
     p = dot + 1;
   }
   return NULL;
+}
+
+int sch_enum_index(const sch_field_t *f, const cJSON *v) {
+  if (!f || f->type != SCH_ENUM || !cJSON_IsString(v) || !v->valuestring)
+    return -1;
+  for (int i = 0; f->enum_values && f->enum_values[i]; i++)
+    if (strcmp(v->valuestring, f->enum_values[i]) == 0)
+      return i;
+  return -1;
+}
+
+int sch_member_enum(const sch_field_t *f, const cJSON *obj, const char *name) {
+  for (const sch_field_t *m = f ? f->fields : NULL; m && m->name; m++)
+    if (strcmp(m->name, name) == 0)
+      return sch_enum_index(m, cJSON_GetObjectItemCaseSensitive(obj, name));
+  return -1;
+}
+
+cJSON *sch_member(const cJSON *obj, const char *name) {
+  return cJSON_GetObjectItemCaseSensitive(obj, name);
+}
+
+void sch_vec3d(const cJSON *v, double out[3]) {
+  int i = 0;
+  out[0] = out[1] = out[2] = 0;
+  for (const cJSON *it = v ? v->child : NULL; it && i < 3; it = it->next)
+    out[i++] = it->valuedouble;
+}
+
+void sch_vec3f(const cJSON *v, float out[3]) {
+  double d[3];
+  sch_vec3d(v, d);
+  for (int i = 0; i < 3; i++)
+    out[i] = (float)d[i];
+}
+
+/* Stores the validated value 'v' of field 'f' at 'at' as f->store says. */
+static void store_value(const sch_field_t *f, const cJSON *v, char *at) {
+  double d = v->valuedouble, c[3];
+  switch (f->store) {
+  case SCH_STORE_NONE:
+  case SCH_STORE_MEMBERS:
+    break;
+  case SCH_STORE_F32:
+    *(float *)(void *)at = (float)d;
+    break;
+  case SCH_STORE_F64:
+    *(double *)(void *)at = d;
+    break;
+  case SCH_STORE_INT:
+    *(int *)(void *)at = (int)d;
+    break;
+  case SCH_STORE_U32:
+    *(uint32_t *)(void *)at = (uint32_t)d;
+    break;
+  case SCH_STORE_U64:
+    *(uint64_t *)(void *)at = (uint64_t)d;
+    break;
+  case SCH_STORE_BOOL:
+    *(int *)(void *)at = cJSON_IsTrue(v);
+    break;
+  case SCH_STORE_ENUM: {
+    int i = sch_enum_index(f, v);
+    *(int *)(void *)at = i >= 0 && f->enum_codes ? f->enum_codes[i] : i < 0 ? 0 : i;
+    break;
+  }
+  case SCH_STORE_VEC3F:
+  case SCH_STORE_UNIT3F: {
+    sch_vec3d(v, c);
+    double len = f->store == SCH_STORE_UNIT3F ? sqrt(c[0] * c[0] + c[1] * c[1] + c[2] * c[2]) : 1;
+    for (int k = 0; k < 3; k++)
+      ((float *)(void *)at)[k] = (float)(f->store == SCH_STORE_UNIT3F ? c[k] / len : c[k]);
+    break;
+  }
+  case SCH_STORE_VEC3D:
+    sch_vec3d(v, (double *)(void *)at);
+    break;
+  case SCH_STORE_VEC3U32:
+    sch_vec3d(v, c);
+    for (int k = 0; k < 3; k++)
+      ((uint32_t *)(void *)at)[k] = (uint32_t)c[k];
+    break;
+  }
+}
+
+void sch_compile(const sch_field_t *f, const cJSON *v, void *base) {
+  for (const sch_field_t *m = f->fields; m && m->name; m++) {
+    if (m->store == SCH_STORE_NONE)
+      continue;
+    const cJSON *mv = cJSON_GetObjectItemCaseSensitive(v, m->name);
+    if (!mv)
+      continue;
+    char *at = (char *)base + m->offset;
+    if (m->store == SCH_STORE_MEMBERS)
+      sch_compile(m, mv, at);
+    else
+      store_value(m, mv, at);
+  }
 }

@@ -7,6 +7,9 @@
 #define VOLFX_SCHEMA_H
 
 #include <cjson/cJSON.h>
+#include <stddef.h>
+
+#include "proto_error.h"
 
 typedef enum {
   SCH_NUMBER,  /* Finite double within [min, max]. */
@@ -31,6 +34,27 @@ enum {
                                fills it where it does. */
 };
 
+/*
+ * How a field's value is stored when a document is compiled (sch_compile) into a C struct: at
+ * 'offset' from the base of the struct its enclosing object compiles into. Each field's storage
+ * is declared once, in its schema entry, and the compiler is the one walk over the table.
+ */
+typedef enum {
+  SCH_STORE_NONE,    /* Not compiled (read by its owner, or not at all). */
+  SCH_STORE_F32,     /* NUMBER or INTEGER as float. */
+  SCH_STORE_F64,     /* NUMBER or INTEGER as double. */
+  SCH_STORE_INT,     /* INTEGER as int. */
+  SCH_STORE_U32,     /* INTEGER as uint32_t. */
+  SCH_STORE_U64,     /* INTEGER as uint64_t. */
+  SCH_STORE_BOOL,    /* BOOL as int, 0 or 1. */
+  SCH_STORE_ENUM,    /* ENUM as an int: its index in 'enum_values', or enum_codes[index]. */
+  SCH_STORE_VEC3F,   /* VEC3 as float[3]. */
+  SCH_STORE_VEC3D,   /* VEC3 as double[3]. */
+  SCH_STORE_VEC3U32, /* VEC3 of whole numbers as uint32_t[3]. */
+  SCH_STORE_UNIT3F,  /* VEC3 as float[3], divided by its length in double first. */
+  SCH_STORE_MEMBERS  /* OBJECT whose stored members go into the same struct, at base + offset. */
+} sch_store_t;
+
 typedef struct sch_field {
   const char *name; /* Member name; NULL ends a 'fields' list. */
   sch_type_t type;
@@ -44,12 +68,20 @@ typedef struct sch_field {
   const struct sch_field *fields; /* Members of an OBJECT. */
   const struct sch_field *items;  /* Item of an ARRAY. */
   unsigned flags;
+  sch_store_t store;     /* How sch_compile stores the value; SCH_STORE_NONE: it does not. */
+  size_t offset;         /* Where, from the base sch_compile writes the enclosing object to. */
+  const int *enum_codes; /* ENUM with SCH_STORE_ENUM: the int stored for each value, in order;
+                            NULL stores the index. */
 } sch_field_t;
 
-typedef struct sch_error {
-  char path[256];    /* Dotted path of the offending value ("objects.2.scale"). */
-  char message[256]; /* What was wrong, naming the path. */
-} sch_error_t;
+/* A validation error: the carrier of proto_error.h, its code PROTO_E_INVALID_PARAMS, its path
+ * the dotted path of the offending value ("objects.2.scale") and its message naming that path. */
+typedef proto_error_t sch_error_t;
+
+/* Fills 'err' as the engine does for an invalid value: code PROTO_E_INVALID_PARAMS, 'path', and
+ * a message "path: ..." from 'fmt'. NULL is fine. Returns -1. */
+int sch_error_set(sch_error_t *err, const char *path, const char *fmt, ...)
+    __attribute__((format(printf, 3, 4)));
 
 /*
  * Validates 'v' against 'f' in place: fills absent members that have defaults, normalises unit
@@ -64,6 +96,26 @@ cJSON *sch_to_json_schema(const sch_field_t *f);
 
 /* A document holding every default of 'f' (an OBJECT). The caller owns the result. */
 cJSON *sch_defaults(const sch_field_t *f);
+
+/*
+ * Compiles the validated object 'v' described by 'f' (an OBJECT) into the struct at 'base':
+ * every member with a store kind is converted and written at base + its offset; members
+ * without one, absent ones and arrays are left to the caller, which compiles an array's items
+ * by calling this on each with the item's own struct.
+ */
+void sch_compile(const sch_field_t *f, const cJSON *v, void *base);
+
+/* Reads of a validated document: member 'name' of 'obj' (case-sensitive; NULL when absent),
+ * and the components of a VEC3 as doubles or floats (zeros for a missing one). */
+cJSON *sch_member(const cJSON *obj, const char *name);
+void sch_vec3d(const cJSON *v, double out[3]);
+void sch_vec3f(const cJSON *v, float out[3]);
+
+/* The index among f->enum_values (f an ENUM) of the string 'v', or -1 when it is none of them. */
+int sch_enum_index(const sch_field_t *f, const cJSON *v);
+/* The same for member 'name' of 'obj', described by the member of that name of 'f' (an OBJECT);
+ * -1 when either is missing. */
+int sch_member_enum(const sch_field_t *f, const cJSON *obj, const char *name);
 
 /* Follows a dotted path ("waves.0.a") inside 'root'; NULL if absent. Array indices are decimal. */
 cJSON *sch_path_get(cJSON *root, const char *path);

@@ -1,7 +1,7 @@
 /*
  * Fresh state a commit seeds (seeding.h): the cloud's seeding and its steps, and the cache that
  * carries seedings from the thread pool to the request's retry. The particles' lattice is laid
- * out by scene.c (scene_particles_of), with the document's checks beside it.
+ * out by seeding_particles.c.
  */
 #include "seeding.h"
 
@@ -108,15 +108,8 @@ static struct seed_entry *find(seed_kind_t kind, const scene_cloud_t *c, const c
   return NULL;
 }
 
-static int fail(scene_error_t *err, int code, const char *path, const char *msg) {
-  err->code = code;
-  snprintf(err->path, sizeof err->path, "%s", path);
-  snprintf(err->message, sizeof err->message, "%s", msg);
-  return -1;
-}
-
 int cloud_seed_get(const scene_cloud_t *c, cloud_cells_t **cells, density_grid_t **density,
-                   scene_error_t *err) {
+                   proto_error_t *err) {
   pthread_mutex_lock(&g_lock);
   struct seed_entry *e = find(SEED_CLOUD, c, NULL);
   if (e) {
@@ -131,15 +124,15 @@ int cloud_seed_get(const scene_cloud_t *c, cloud_cells_t **cells, density_grid_t
     g_want->kind = SEED_CLOUD;
     g_want->cloud = *c;
     snprintf(msg, sizeof msg, "cloud: %ux%ux%u cells are being seeded", c->n[0], c->n[1], c->n[2]);
-    return fail(err, SCENE_DEFERRED_SEED, "cloud", msg);
+    return proto_error_set(err, SCENE_DEFERRED_SEED, "cloud", "%s", msg);
   }
   if (seed(c, cells, density) == 0)
     return 0;
   snprintf(msg, sizeof msg, "out of memory for a %ux%ux%u cloud", c->n[0], c->n[1], c->n[2]);
-  return fail(err, PROTO_E_INTERNAL, "cloud", msg);
+  return proto_error_set(err, PROTO_E_INTERNAL, "cloud", "%s", msg);
 }
 
-/* The settings the particles of 'doc' are laid out from, as a document scene_particles_of
+/* The settings the particles of 'doc' are laid out from, as a document seeding_particles_of
  * reads: fluid.initial, fluid.h (the default spacing), fluid.bounds and the objects. NULL when
  * out of memory. */
 static cJSON *fluid_settings(const cJSON *doc) {
@@ -162,12 +155,12 @@ static cJSON *fluid_settings(const cJSON *doc) {
   return s;
 }
 
-int particles_seed_get(const cJSON *doc, particles_t **out, scene_error_t *err) {
+int particles_seed_get(const cJSON *doc, particles_t **out, proto_error_t *err) {
   cJSON *settings = fluid_settings(doc);
   char *key = settings ? cJSON_PrintUnformatted(settings) : NULL;
   if (!key) {
     cJSON_Delete(settings);
-    return fail(err, PROTO_E_INTERNAL, "fluid.initial", "out of memory");
+    return proto_error_set(err, PROTO_E_INTERNAL, "fluid.initial", "out of memory");
   }
   pthread_mutex_lock(&g_lock);
   struct seed_entry *e = find(SEED_PARTICLES, NULL, key);
@@ -182,12 +175,13 @@ int particles_seed_get(const cJSON *doc, particles_t **out, scene_error_t *err) 
   if (g_want && !g_skip[SEED_PARTICLES]) {
     g_want->kind = SEED_PARTICLES;
     g_want->fluid = settings;
-    return fail(err, SCENE_DEFERRED_SEED, "fluid.initial", "fluid.initial: being laid out");
+    return proto_error_set(err, SCENE_DEFERRED_SEED, "fluid.initial",
+                           "fluid.initial: being laid out");
   }
   cJSON_Delete(settings);
-  if (scene_particles_of(doc, out) == 0)
+  if (seeding_particles_of(doc, out) == 0)
     return 0;
-  return fail(err, PROTO_E_INTERNAL, "fluid.initial", "out of memory");
+  return proto_error_set(err, PROTO_E_INTERNAL, "fluid.initial", "out of memory");
 }
 
 int seeding_make(seed_want_t *want, seed_pin_t **pin) {
@@ -199,7 +193,7 @@ int seeding_make(seed_want_t *want, seed_pin_t **pin) {
     ok = seed(&want->cloud, &made->cells, &made->density) == 0;
   } else if (ok) {
     made->fluid = cJSON_PrintUnformatted(want->fluid);
-    ok = made->fluid && scene_particles_of(want->fluid, &made->particles) == 0;
+    ok = made->fluid && seeding_particles_of(want->fluid, &made->particles) == 0;
   }
   if (!ok) {
     seed_want_clear(want);

@@ -19,9 +19,10 @@
 
 #include <cjson/cJSON.h>
 
-#include "scene.h"
+#include "proto_error.h"
+#include "scene_schema.h"
 
-/* scene_error_t.code of a change that needs a seeding first (not a protocol code). */
+/* proto_error_t.code of a change that needs a seeding first (not a protocol code). */
 #define SCENE_DEFERRED_SEED 2
 
 typedef enum { SEED_CLOUD, SEED_PARTICLES, SEED_KINDS } seed_kind_t;
@@ -46,11 +47,22 @@ void seed_want_clear(seed_want_t *want);
  * -1 with 'err' set when out of memory, or SCENE_DEFERRED_SEED while a deferral is armed and
  * they are not cached. */
 int cloud_seed_get(const scene_cloud_t *c, cloud_cells_t **cells, density_grid_t **density,
-                   scene_error_t *err);
+                   proto_error_t *err);
 
 /* The particles of fluid.initial in the checked document 'doc' (a reference; NULL for none),
- * as scene_particles_of gives them. Returns 0, or -1 as cloud_seed_get. */
-int particles_seed_get(const cJSON *doc, particles_t **out, scene_error_t *err);
+ * as seeding_particles_of gives them. Returns 0, or -1 as cloud_seed_get. */
+int particles_seed_get(const cJSON *doc, particles_t **out, proto_error_t *err);
+
+/*
+ * The particles of fluid.initial in a checked document (only its "fluid" and "objects" are
+ * read), in 'out' (NULL when there are none): each block's lattice, less the points inside an
+ * opaque object the fluid collides with (which would burst out of it). Any thread. Returns 0,
+ * or -1 on OOM.
+ */
+int seeding_particles_of(const cJSON *doc, particles_t **out);
+
+/* The lattice spacing of block 'blk' of fluid.initial in checked 'fluid': its own, or h/2. */
+double seeding_block_spacing(const cJSON *fluid, const cJSON *blk);
 
 /* Makes and caches the seeding 'want' (taking what it owns), pinned by '*pin' until
  * seeding_unpin. Any thread. Returns 0, or -1 when out of memory. */
