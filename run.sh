@@ -1,7 +1,8 @@
 #!/usr/bin/env bash
 # volfx quick start.
 #   ./run.sh          install missing packages, build, render out/demo.png, run volfxd on
-#                     127.0.0.1:7878 with the demo scene until Ctrl-C
+#                     127.0.0.1:7878 with the demo scene, and its browser viewer on
+#                     http://127.0.0.1:8080/, until Ctrl-C
 #   ./run.sh test     install, build, run the whole test suite (ctest)
 #   ./run.sh asan     the same suite in a separate AddressSanitizer + UBSan build
 set -euo pipefail
@@ -10,9 +11,12 @@ cd "$(dirname "$0")"
 # slurm-wlm and munge: the render-farm test brings up a private one-node Slurm cluster.
 # libsystemd-dev: volfxd's readiness notification; systemd: systemd-analyze and systemd-sysusers,
 # which check deploy/volfxd.service and deploy/volfx.sysusers.conf (no systemd needs to run).
+# libwebsockets-dev and libwebsockets-evlib-uv: the --http viewer on volfxd's libuv loop;
+# chromium, chromium-driver and python3-selenium: the viewer's test in a headless browser.
 packages=(build-essential cmake pkg-config libuv1-dev libcjson-dev libpng-dev zlib1g-dev
           ocl-icd-opencl-dev opencl-headers pocl-opencl-icd python3 slurm-wlm munge
-          libsystemd-dev systemd)
+          libsystemd-dev systemd libwebsockets-dev libwebsockets-evlib-uv chromium
+          chromium-driver python3-selenium)
 
 install_missing() {
   local missing=()
@@ -60,7 +64,7 @@ case "$mode" in
     build build
     mkdir -p out data
     log=$(mktemp)
-    build/bin/volfxd --listen 127.0.0.1:7878 --scene demo --data data >"$log" &
+    build/bin/volfxd --listen 127.0.0.1:7878 --http 127.0.0.1:8080 --scene demo --data data >"$log" &
     pid=$!
     trap 'kill -INT $pid 2>/dev/null; wait $pid; rm -f "$log"' INT TERM
     for _ in $(seq 1 300); do
@@ -70,7 +74,8 @@ case "$mode" in
     done
     cat "$log"
     build/bin/volfx render -o out/demo.png -W 960 -H 540
-    echo "run.sh: wrote out/demo.png; volfxd is serving on 127.0.0.1:7878 (Ctrl-C stops it)"
+    echo "run.sh: wrote out/demo.png; volfxd is serving on 127.0.0.1:7878 and the viewer on" \
+         "http://127.0.0.1:8080/ (Ctrl-C stops it)"
     wait $pid
     ;;
   *)

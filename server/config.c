@@ -20,6 +20,10 @@ static const char usage[] =
     "  --listen HOST:PORT   TCP address (default 127.0.0.1:7878; port 0 picks one; 'none' "
     "disables)\n"
     "  --unix PATH          also listen on a Unix socket\n"
+    "  --http HOST:PORT     also serve the browser viewer and WebSocket JSON-RPC there\n"
+    "  --http-origin LIST   further Origins allowed to open a WebSocket (comma-separated,\n"
+    "                       e.g. https://tools.example.com; '*' allows any)\n"
+    "  --web DIR            the viewer's files (default: the source tree's client/web/)\n"
     "  --data DIR           data directory for snapshots, sequences and meshes\n"
     "  --token TOKEN        require 'auth' first (default: $VOLFX_TOKEN)\n"
     "  --insecure           allow a non-loopback address without a token\n"
@@ -46,21 +50,23 @@ static int copy_str(char *dst, size_t cap, const char *src, const char *what) {
   return CONFIG_OK;
 }
 
-static int parse_listen(config_t *c, const char *s) {
+/* Parses "HOST:PORT" (or "none", which leaves 'host' empty) of option 'what' into 'host' (of
+ * 'cap' bytes) and '*port'. */
+static int parse_host_port(const char *s, char *host, size_t cap, int *port, const char *what) {
   if (strcmp(s, "none") == 0) {
-    c->listen_host[0] = '\0';
+    host[0] = '\0';
     return CONFIG_OK;
   }
   const char *colon = strrchr(s, ':');
   if (!colon || colon == s) {
-    fprintf(stderr, "volfxd: --listen wants HOST:PORT, got '%s'\n", s);
+    fprintf(stderr, "volfxd: %s wants HOST:PORT, got '%s'\n", what, s);
     return CONFIG_ERROR;
   }
   char *end;
   errno = 0;
-  long port = strtol(colon + 1, &end, 10);
-  if (errno || *end || end == colon + 1 || port < 0 || port > 65535) {
-    fprintf(stderr, "volfxd: --listen port must be 0-65535, got '%s'\n", colon + 1);
+  long p = strtol(colon + 1, &end, 10);
+  if (errno || *end || end == colon + 1 || p < 0 || p > 65535) {
+    fprintf(stderr, "volfxd: %s port must be 0-65535, got '%s'\n", what, colon + 1);
     return CONFIG_ERROR;
   }
   size_t n = (size_t)(colon - s);
@@ -69,13 +75,13 @@ static int parse_listen(config_t *c, const char *s) {
     s++;
     n -= 2;
   }
-  if (n >= sizeof c->listen_host) {
-    fprintf(stderr, "volfxd: --listen host is too long\n");
+  if (n >= cap) {
+    fprintf(stderr, "volfxd: %s host is too long\n", what);
     return CONFIG_ERROR;
   }
-  memcpy(c->listen_host, s, n);
-  c->listen_host[n] = '\0';
-  c->listen_port = (int)port;
+  memcpy(host, s, n);
+  host[n] = '\0';
+  *port = (int)p;
   return CONFIG_OK;
 }
 
@@ -109,7 +115,10 @@ enum {
   OPT_READY_FD,
   OPT_PRECOMPILE,
   OPT_VERSION,
-  OPT_HELP
+  OPT_HELP,
+  OPT_HTTP,
+  OPT_HTTP_ORIGIN,
+  OPT_WEB
 };
 
 static const struct option long_options[] = {
@@ -131,6 +140,9 @@ static const struct option long_options[] = {
     {"precompile", no_argument, 0, OPT_PRECOMPILE},
     {"version", no_argument, 0, OPT_VERSION},
     {"help", no_argument, 0, OPT_HELP},
+    {"http", required_argument, 0, OPT_HTTP},
+    {"http-origin", required_argument, 0, OPT_HTTP_ORIGIN},
+    {"web", required_argument, 0, OPT_WEB},
     {0, 0, 0, 0},
 };
 
@@ -139,7 +151,13 @@ static int apply_option(config_t *c, int opt, const char *arg) {
   double v;
   switch (opt) {
   case OPT_LISTEN:
-    return parse_listen(c, arg);
+    return parse_host_port(arg, c->listen_host, sizeof c->listen_host, &c->listen_port, "--listen");
+  case OPT_HTTP:
+    return parse_host_port(arg, c->http_host, sizeof c->http_host, &c->http_port, "--http");
+  case OPT_HTTP_ORIGIN:
+    return copy_str(c->http_origins, sizeof c->http_origins, arg, "--http-origin");
+  case OPT_WEB:
+    return copy_str(c->web_dir, sizeof c->web_dir, arg, "--web");
   case OPT_UNIX:
     return copy_str(c->unix_path, sizeof c->unix_path, arg, "--unix");
   case OPT_DATA:
@@ -322,6 +340,7 @@ int config_load(config_t *c, int argc, char **argv) {
   strcpy(c->listen_host, PROTO_DEFAULT_HOST);
   c->listen_port = PROTO_DEFAULT_PORT;
   strcpy(c->presets_dir, VOLFX_PRESET_DIR);
+  strcpy(c->web_dir, VOLFX_WEB_DIR);
   strcpy(c->scene, "demo");
   c->log_level = LOG_INFO;
   c->idle_timeout_s = 300;
@@ -385,6 +404,12 @@ int config_load(config_t *c, int argc, char **argv) {
       !c->insecure) {
     fprintf(stderr, "volfxd: refusing to listen on %s without a token; set --token or --insecure\n",
             c->listen_host);
+    return CONFIG_ERROR;
+  }
+  if (c->http_host[0] && !config_host_is_loopback(c->http_host) && !c->token[0] && !c->insecure) {
+    fprintf(stderr,
+            "volfxd: refusing to serve http on %s without a token; set --token or --insecure\n",
+            c->http_host);
     return CONFIG_ERROR;
   }
   if (!c->listen_host[0] && !c->unix_path[0]) {

@@ -27,11 +27,15 @@ typedef struct config {
   char listen_host[256]; /* Empty when TCP is disabled ("--listen none"). */
   int listen_port;       /* 0 picks a free port. */
   char unix_path[256];   /* Empty: no Unix socket. */
-  char data_dir[1024];   /* Empty: no data directory (file methods refused). */
-  char token[256];       /* Empty: no authentication. */
-  int insecure;          /* Allow a non-loopback listener without a token. */
-  int precompile;        /* Compile and warm every kernel into the cache, then exit. */
-  char device[64];       /* "cpu", "gpu", an index, or empty for the default. */
+  char http_host[256];   /* Empty: no HTTP/WebSocket listener (--http). */
+  int http_port;
+  char http_origins[1024]; /* Further Origins a WebSocket may come from, comma-separated. */
+  char web_dir[1024];      /* The viewer's static files. */
+  char data_dir[1024];     /* Empty: no data directory (file methods refused). */
+  char token[256];         /* Empty: no authentication. */
+  int insecure;            /* Allow a non-loopback listener without a token. */
+  int precompile;          /* Compile and warm every kernel into the cache, then exit. */
+  char device[64];         /* "cpu", "gpu", an index, or empty for the default. */
   char kernels_dir[1024];
   char scene[1024]; /* Preset name or file for the "main" scene; empty for defaults. */
   char presets_dir[1024];

@@ -114,7 +114,7 @@ static void send_frame(sub_t *sub) {
 /* The connection's socket has no queued output: writes the frames waiting. */
 static void conn_drained(conn_t *c) {
   for (sub_t *sub = c->subs; sub && !c->closing; sub = sub->next)
-    if (sub->wait_line && uv_stream_get_write_queue_size(c->stream) == 0)
+    if (sub->wait_line && conn_queued(c) == 0)
       send_frame(sub);
 }
 
@@ -226,7 +226,7 @@ static void on_frame_done(job_t *j) {
   sub->wait_att = bytes;
   sub->wait_att_len = nbytes;
   output_total_add(s, (long long)(len + nbytes));
-  if (uv_stream_get_write_queue_size(sub->conn->stream) == 0)
+  if (conn_queued(sub->conn) == 0)
     send_frame(sub);
   sub_unref(sub);
 }

@@ -25,6 +25,7 @@
 #include <unistd.h>
 
 #include "dispatch.h"
+#include "http.h"
 #include "log.h"
 #include "server.h"
 
@@ -113,7 +114,7 @@ void conn_close(conn_t *c) {
   if (c->next)
     c->next->prev = c->prev;
   s->nconns--;
-  uv_close((uv_handle_t *)c->stream, on_handle_closed);
+  c->transport->close(c);
   uv_close((uv_handle_t *)&c->idle, on_handle_closed);
   uv_close((uv_handle_t *)&c->stall, on_handle_closed);
   uv_close((uv_handle_t *)&c->delay, on_handle_closed);
@@ -123,7 +124,7 @@ void conn_close(conn_t *c) {
 void conn_finish(conn_t *c) {
   if (c->closing)
     return;
-  uv_read_stop(c->stream);
+  c->transport->read_stop(c);
   c->draining = 1;
   if (!c->head && c->out_bytes == 0)
     conn_close(c);
@@ -138,7 +139,7 @@ static void on_alloc(uv_handle_t *h, size_t suggested, uv_buf_t *buf);
  * OUT_STALL_MS closes the connection. */
 static void on_stall(uv_timer_t *t) {
   conn_t *c = t->data;
-  size_t queued = uv_stream_get_write_queue_size(c->stream);
+  size_t queued = conn_queued(c);
   uint64_t now = now_ns();
   if (queued < c->stall_mark) {
     c->stall_mark = queued;
@@ -159,7 +160,7 @@ static void conn_output_changed(conn_t *c, int progress) {
     return;
   if (c->out_bytes > 0) {
     if (progress || !uv_is_active((uv_handle_t *)&c->stall)) {
-      c->stall_mark = uv_stream_get_write_queue_size(c->stream);
+      c->stall_mark = conn_queued(c);
       c->stall_since_ns = now_ns();
     }
     if (!uv_is_active((uv_handle_t *)&c->stall))
@@ -172,7 +173,7 @@ static void conn_output_changed(conn_t *c, int progress) {
     if (!c->held && !c->draining) {
       pump(c);
       if (!c->held && !c->closing && !c->draining && !c->out_paused)
-        uv_read_start(c->stream, on_alloc, on_read);
+        c->transport->read_start(c);
     }
   }
 }
@@ -185,18 +186,22 @@ static void on_write(uv_write_t *req, int status) {
   write_req_t *w = (write_req_t *)req;
   conn_t *c = w->conn;
   size_t total = w->total;
-  conn_output_written(c, total);
   free(w->line);
   for (int i = 0; i < w->natt; i++)
     free(w->att[i]);
   free(w);
+  conn_written(c, total, status);
+}
+
+void conn_written(conn_t *c, size_t total, int status) {
+  conn_output_written(c, total);
   if (!c->closing) {
     if (status < 0 && status != UV_ECANCELED) {
       LOG(LOG_DEBUG, "net", "connection %llu write failed: %s", (unsigned long long)c->id,
           uv_strerror(status));
       conn_close(c);
     } else {
-      if (uv_stream_get_write_queue_size(c->stream) == 0) {
+      if (conn_queued(c) == 0) {
         RUN_HOOKS(c, on_drain);
         if (c->draining && !c->head && c->out_bytes == 0)
           conn_close(c);
@@ -210,11 +215,11 @@ static void on_write(uv_write_t *req, int status) {
   conn_unref(c);
 }
 
-/* Writes 'line' and the 'n' attachments 'atts' of 'lens' bytes after it in one uv_write,
- * without copying them; takes every buffer (free()). */
-static void write_buffers(conn_t *c, char *line, size_t len, unsigned char **atts,
-                          const size_t *lens, int n) {
-  write_req_t *w = c->closing ? NULL : malloc(sizeof *w + (size_t)n * sizeof *atts);
+/* The stream transport's write: 'line' and the attachments after it in one uv_write, without
+ * copying them. */
+static int stream_write(conn_t *c, char *line, size_t len, unsigned char **atts, const size_t *lens,
+                        int n) {
+  write_req_t *w = malloc(sizeof *w + (size_t)n * sizeof *atts);
   uv_buf_t stack[9], *bufs = n < 9 ? stack : malloc((size_t)(n + 1) * sizeof *bufs);
   if (!w || !bufs) {
     free(line);
@@ -223,9 +228,7 @@ static void write_buffers(conn_t *c, char *line, size_t len, unsigned char **att
     free(w);
     if (bufs != stack)
       free(bufs);
-    if (!c->closing)
-      conn_close(c);
-    return;
+    return -1;
   }
   w->conn = c;
   w->line = line;
@@ -239,19 +242,38 @@ static void write_buffers(conn_t *c, char *line, size_t len, unsigned char **att
     bufs[w->natt] = uv_buf_init((char *)atts[i], (unsigned)lens[i]);
     w->total += lens[i];
   }
-  conn_output_queued(c, w->total);
-  c->refs++;
   int rc = uv_write(&w->req, c->stream, bufs, (unsigned)w->natt + 1, on_write);
   if (bufs != stack)
     free(bufs);
   if (rc < 0) {
-    conn_output_written(c, w->total);
-    output_total_add(c->srv, -(long long)w->total);
-    c->refs--;
     free(line);
     for (int i = 0; i < w->natt; i++)
       free(w->att[i]);
     free(w);
+    return -1;
+  }
+  return 0;
+}
+
+/* Writes 'line' and the 'n' attachments 'atts' of 'lens' bytes after it through the
+ * connection's transport; takes every buffer (free()). */
+static void write_buffers(conn_t *c, char *line, size_t len, unsigned char **atts,
+                          const size_t *lens, int n) {
+  if (c->closing) {
+    free(line);
+    for (int i = 0; i < n; i++)
+      free(atts[i]);
+    return;
+  }
+  size_t total = len;
+  for (int i = 0; i < n; i++)
+    total += atts[i] ? lens[i] : 0;
+  conn_output_queued(c, total);
+  c->refs++;
+  if (c->transport->write(c, line, len, atts, lens, n) != 0) {
+    conn_output_written(c, total);
+    output_total_add(c->srv, -(long long)total);
+    c->refs--;
     conn_close(c);
     return;
   }
@@ -454,7 +476,7 @@ void conn_auth_failed(call_t *call) {
 /* Appends an error reply with a null id after any pending replies, and closes the connection
  * once everything queued is written. Used when the connection cannot go on. */
 static void finish_with_error(conn_t *c, int code, const char *msg, const char *path) {
-  uv_read_stop(c->stream);
+  c->transport->read_stop(c);
   c->draining = 1;
   c->srv->stats.errors++;
   reply_t *r = calloc(1, sizeof *r + sizeof(reply_part_t));
@@ -513,7 +535,7 @@ static void pump(conn_t *c) {
       break;
   }
   if ((c->held || c->out_paused) && !c->closing)
-    uv_read_stop(c->stream);
+    c->transport->read_stop(c);
   conn_unref(c);
 }
 
@@ -536,13 +558,18 @@ static void on_read(uv_stream_t *stream, ssize_t nread, const uv_buf_t *buf) {
     conn_close(c);
     return;
   }
-  if (nread == 0 || c->closing || c->draining)
+  if (nread > 0)
+    conn_received(c, buf->base, (size_t)nread);
+}
+
+void conn_received(conn_t *c, const char *data, size_t n) {
+  if (n == 0 || c->closing || c->draining)
     return;
   /* Only an authenticated connection's traffic keeps it open: one that never authenticates is
    * closed after the idle timeout whatever it sends, so blank lines cannot hold the slots. */
   if (c->srv->cfg.idle_timeout_s > 0 && c->authed)
     uv_timer_again(&c->idle);
-  if (proto_reader_feed(&c->reader, buf->base, (size_t)nread) != PROTO_READ_OK) {
+  if (proto_reader_feed(&c->reader, data, n) != PROTO_READ_OK) {
     conn_close(c);
     return;
   }
@@ -561,36 +588,52 @@ void conn_release(conn_t *c) {
   if (!c->held && !c->closing && !c->draining) {
     pump(c);
     if (!c->held && !c->closing && !c->draining && !c->out_paused)
-      uv_read_start(c->stream, on_alloc, on_read);
+      c->transport->read_start(c);
   }
   conn_unref(c);
 }
 
-static void on_connection(uv_stream_t *listener, int status) {
-  server_t *s = listener->data;
-  if (status < 0) {
-    LOG(LOG_WARN, "net", "accept failed: %s", uv_strerror(status));
-    return;
-  }
+static void stream_read_stop(conn_t *c) {
+  uv_read_stop(c->stream);
+}
+
+static void stream_read_start(conn_t *c) {
+  uv_read_start(c->stream, on_alloc, on_read);
+}
+
+static size_t stream_queued(const conn_t *c) {
+  return uv_stream_get_write_queue_size(c->stream);
+}
+
+static void stream_close(conn_t *c) {
+  uv_close((uv_handle_t *)c->stream, on_handle_closed);
+}
+
+static const conn_transport_t stream_transport = {.write = stream_write,
+                                                  .read_stop = stream_read_stop,
+                                                  .read_start = stream_read_start,
+                                                  .queued = stream_queued,
+                                                  .close = stream_close};
+
+size_t conn_queued(const conn_t *c) {
+  return c->transport->queued(c);
+}
+
+/* A connection with its timers, in the server's list; its transport not yet started. */
+static conn_t *conn_new(server_t *s, const conn_transport_t *transport, void *ctx) {
   conn_t *c = calloc(1, sizeof *c);
   if (!c)
-    return;
+    return NULL;
   c->srv = s;
-  if (listener == (uv_stream_t *)&s->tcp) {
-    uv_tcp_init(s->loop, &c->h.tcp);
-    uv_tcp_nodelay(&c->h.tcp, 1);
-  } else {
-    uv_pipe_init(s->loop, &c->h.pipe, 0);
-  }
-  c->stream = (uv_stream_t *)&c->h;
-  c->stream->data = c;
+  c->transport = transport;
+  c->transport_ctx = ctx;
   uv_timer_init(s->loop, &c->idle);
   c->idle.data = c;
   uv_timer_init(s->loop, &c->stall);
   c->stall.data = c;
   uv_timer_init(s->loop, &c->delay);
   c->delay.data = c;
-  c->refs = 4; /* The stream and the idle, stall and delay timers. */
+  c->refs = 4; /* The transport and the idle, stall and delay timers. */
   c->id = ++s->next_conn_id;
   c->authed = s->cfg.token[0] == '\0';
   proto_reader_init(&c->reader, s->cfg.limits.line_bytes);
@@ -600,14 +643,16 @@ static void on_connection(uv_stream_t *listener, int status) {
   s->conns = c;
   s->nconns++;
   s->stats.connections_total++;
+  return c;
+}
 
-  if (uv_accept(listener, c->stream) != 0) {
-    conn_close(c);
-    return;
-  }
+/* Applies the connection and authentication limits to a new connection and starts it: returns
+ * 0, or -1 when it was refused (it closes once the error is written) or the server stops. */
+static int conn_admit(conn_t *c) {
+  server_t *s = c->srv;
   if (s->stopping) {
     conn_close(c);
-    return;
+    return -1;
   }
   if (s->nconns > s->cfg.limits.connections) {
     LOG(LOG_WARN, "net", "connection limit (%u) reached, refusing a client",
@@ -616,7 +661,7 @@ static void on_connection(uv_stream_t *listener, int status) {
     snprintf(msg, sizeof msg, "limit exceeded: too many connections (limit %u)",
              s->cfg.limits.connections);
     finish_with_error(c, PROTO_E_LIMIT, msg, "connections");
-    return;
+    return -1;
   }
   if (!c->authed) {
     if (s->nunauth >= s->cfg.budget.unauthenticated) {
@@ -627,13 +672,45 @@ static void on_connection(uv_stream_t *listener, int status) {
                "limit exceeded: too many connections waiting to authenticate (limit %u)",
                s->cfg.budget.unauthenticated);
       finish_with_error(c, PROTO_E_LIMIT, msg, "unauthenticated");
-      return;
+      return -1;
     }
     s->nunauth++;
     c->unauth_counted = 1;
   }
   idle_start(c);
-  uv_read_start(c->stream, on_alloc, on_read);
+  c->transport->read_start(c);
+  return 0;
+}
+
+conn_t *conn_open(server_t *s, const conn_transport_t *transport, void *ctx) {
+  conn_t *c = conn_new(s, transport, ctx);
+  if (c)
+    conn_admit(c);
+  return c;
+}
+
+static void on_connection(uv_stream_t *listener, int status) {
+  server_t *s = listener->data;
+  if (status < 0) {
+    LOG(LOG_WARN, "net", "accept failed: %s", uv_strerror(status));
+    return;
+  }
+  conn_t *c = conn_new(s, &stream_transport, NULL);
+  if (!c)
+    return;
+  if (listener == (uv_stream_t *)&s->tcp) {
+    uv_tcp_init(s->loop, &c->h.tcp);
+    uv_tcp_nodelay(&c->h.tcp, 1);
+  } else {
+    uv_pipe_init(s->loop, &c->h.pipe, 0);
+  }
+  c->stream = (uv_stream_t *)&c->h;
+  c->stream->data = c;
+  if (uv_accept(listener, c->stream) != 0) {
+    conn_close(c);
+    return;
+  }
+  conn_admit(c);
 }
 
 /*
@@ -685,6 +762,8 @@ static int clear_stale_socket(const char *path) {
 int net_listen(server_t *s) {
   config_t *cfg = &s->cfg;
   int rc;
+  if (http_listen(s) != 0)
+    return -1;
   if (cfg->listen_host[0]) {
     struct sockaddr_storage addr;
     if (uv_ip4_addr(cfg->listen_host, cfg->listen_port, (struct sockaddr_in *)&addr) != 0 &&
@@ -727,6 +806,7 @@ static void on_listener_closed(uv_handle_t *h) {
 }
 
 void net_stop(server_t *s) {
+  http_stop(s);
   if (s->has_tcp) {
     uv_close((uv_handle_t *)&s->tcp, on_listener_closed);
     s->has_tcp = 0;
@@ -741,7 +821,7 @@ void net_stop(server_t *s) {
   conn_t *c = s->conns;
   while (c) {
     conn_t *next = c->next;
-    uv_read_stop(c->stream);
+    c->transport->read_stop(c);
     /* Draining first, so that what the hooks write does not start the reading again. */
     c->draining = 1;
     RUN_HOOKS(c, on_stop);

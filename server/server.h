@@ -24,6 +24,7 @@ typedef struct worker worker_t;
 typedef struct method method_t;
 typedef struct fluid_host fluid_host_t;
 typedef struct seq_job seq_job_t;
+typedef struct conn_transport conn_transport_t;
 
 /* One response (or nothing, for a notification) inside a reply. */
 typedef struct reply_part {
@@ -66,12 +67,31 @@ typedef struct conn_hooks {
 /* Hook tables a server holds at most. */
 #define CONN_HOOKS_MAX 8
 
+/*
+ * How a connection's bytes move: a libuv stream (TCP, Unix socket; net.c) or a WebSocket
+ * (ws_conn.c). The connection's requests, replies and limits are the same over either.
+ */
+struct conn_transport {
+  /* Sends 'line' ('len' bytes, ended by '\n') and then the 'n' attachments 'atts' ('lens'
+   * bytes; NULL entries are skipped); takes every buffer (free()), also on failure. Returns 0
+   * and calls conn_written once all is sent or dropped, or -1 without calling it. */
+  int (*write)(conn_t *c, char *line, size_t len, unsigned char **atts, const size_t *lens, int n);
+  void (*read_stop)(conn_t *c);
+  void (*read_start)(conn_t *c);
+  /* Bytes handed to the transport and not yet sent. */
+  size_t (*queued)(const conn_t *c);
+  /* Closes the transport; it calls conn_unref once when it is done with the connection. */
+  void (*close)(conn_t *c);
+};
+
 struct conn {
   union {
     uv_tcp_t tcp;
     uv_pipe_t pipe;
   } h;
-  uv_stream_t *stream;
+  uv_stream_t *stream; /* NULL for a WebSocket. */
+  const conn_transport_t *transport;
+  void *transport_ctx; /* The transport's own state (a WebSocket's). */
   uv_timer_t idle;
   uv_timer_t stall; /* Runs while output is unsent; closes when nothing is read for long. */
   uv_timer_t delay; /* Holds back the answer to a wrong token (conn_auth_failed). */
@@ -141,7 +161,8 @@ struct server {
   uv_tcp_t tcp;
   uv_pipe_t pipe;
   int has_tcp, has_pipe;
-  int pipe_bound; /* The Unix socket file is ours (bound by this process). */
+  struct http_server *http; /* The --http listener (http.c), or NULL. */
+  int pipe_bound;           /* The Unix socket file is ours (bound by this process). */
   uv_signal_t sigint, sigterm;
   uv_idle_t stopper;     /* Runs the shutdown once the current callbacks are done. */
   uv_timer_t stop_timer; /* Closes connections that never drain during a shutdown. */
@@ -173,6 +194,15 @@ int net_listen(server_t *s);
 /* Adds a feature's hooks, run for every connection from now on (at start-up, before
  * net_listen). Returns 0, or -1 (logged) when CONN_HOOKS_MAX tables are held. */
 int conn_hooks_add(server_t *s, const conn_hooks_t *h);
+/* A new connection over 'transport' (its state 'ctx'), counted against the connection and
+ * authentication limits: refused ones get a -32003 error and close. NULL when out of memory. */
+conn_t *conn_open(server_t *s, const conn_transport_t *transport, void *ctx);
+/* Bytes a transport received ('n' of them): fed to the request reader and dispatched. */
+void conn_received(conn_t *c, const char *data, size_t n);
+/* A transport's write of 'total' bytes ended ('status' < 0: failed, UV_ECANCELED: dropped). */
+void conn_written(conn_t *c, size_t total, int status);
+/* Bytes handed to the transport and not yet sent: 0 when the socket is idle. */
+size_t conn_queued(const conn_t *c);
 /* Queues 'line' (and 'att', if any) for writing; takes ownership of both (free()). */
 void conn_write(conn_t *c, char *line, size_t len, unsigned char *att, size_t att_len);
 /* Closes a connection at once, dropping unwritten output. */
