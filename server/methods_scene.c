@@ -106,6 +106,8 @@ static void scene_get_m(call_t *call) {
   call_result(call, v);
 }
 
+static double play_rate_default(void);
+
 static void scene_set_m(call_t *call) {
   scene_entry_t *e = call_scene(call);
   if (!e)
@@ -152,10 +154,10 @@ static void scene_set_m(call_t *call) {
     return;
   }
   /* sim.playing set in the document plays or pauses the scene, as sim.play at its default
-   * rate (60 steps a second) and sim.pause would. */
+   * rate and sim.pause would. */
   cJSON *playing = scene_get(e->scene, "sim.playing", &err);
   if (playing && cJSON_IsTrue(playing) && !(e->rate > 0))
-    play_start(e, 60);
+    play_start(e, play_rate_default());
   else if (playing && !cJSON_IsTrue(playing) && e->rate > 0)
     play_stop(e, NULL, NULL);
   cJSON_Delete(playing);
@@ -383,6 +385,12 @@ static const sch_field_t play_params[] = {PARAM_SCENE,
                                            .flags = SCH_POSITIVE},
                                           {0}};
 static const sch_field_t pause_params[] = {PARAM_SCENE, {0}};
+
+/* sim.play's rate when left out: the default of its param above. */
+static double play_rate_default(void) {
+  static const sch_field_t play = {.type = SCH_OBJECT, .fields = play_params};
+  return sch_path_field(&play, "rate")->def;
+}
 
 static const int auth_errors[] = {PROTO_E_UNAUTHORIZED, 0};
 static const int scene_errors[] = {PROTO_E_UNAUTHORIZED, PROTO_E_NOT_FOUND, 0};

@@ -1,7 +1,7 @@
 #!/usr/bin/env python3
 """
 rpc.discover against docs/protocol.md: the OpenRPC document names exactly the methods of the
-protocol's "Methods" section, every parameter named in a heading, with JSON Schemas, defaults
+protocol's "Methods" section, every parameter of its reference, with JSON Schemas, defaults
 and ranges, and publishes the scene document's schema as components.schemas.Scene.
 
     python3 tests/integration/test_discover.py --bin build/bin
@@ -26,10 +26,12 @@ DOC = {}
 
 def parse_protocol_md(path):
     """
-    {method: {param: default_or_None}} from the `### ` headings of the "Methods" section, e.g.
-    ### `sim.play {scene, rate = 60}` / `sim.pause {scene}`
-    ### `scene.set {scene, patch}` or `{scene, path, value}`
-    A backtick span starting with '{' adds params to the method before it.
+    {method: {param: default_or_None}} from the "Methods" section: the methods named in its
+    `### ` headings (### `sim.play` / `sim.pause`), and each param with its default from the
+    generated reference's param table, whose rows read
+    | `render` | `width` | integer (pixels) | `512` | [1, 4096] | Frame width... |
+    (the method cell empty on a method's later rows; the default `required` or `optional` when
+    there is none).
     """
     with open(path, encoding="utf-8") as f:
         text = f.read()
@@ -37,33 +39,24 @@ def parse_protocol_md(path):
     if not m:
         raise mock.CheckError("docs/protocol.md has no '## Methods' section")
     methods = {}
+    last = None
     for line in m.group(1).splitlines():
-        if not line.startswith("### "):
+        if line.startswith("### "):
+            for span in re.findall(r"`([A-Za-z0-9_.]+)`", line):
+                methods.setdefault(span, {})
             continue
-        last = None
-        for span in re.findall(r"`([^`]*)`", line):
-            span = span.strip()
-            if span.startswith("{"):
-                name, body = last, span
-            else:
-                mm = re.match(r"([A-Za-z0-9_.]+)\s*(\{.*\})?\s*$", span)
-                if not mm:
-                    continue
-                name, body = mm.group(1), mm.group(2) or "{}"
-                last = name
-            if name is None:
-                continue
-            params = methods.setdefault(name, {})
-            inner = body.strip()[1:-1].strip()
-            for item in filter(None, (x.strip() for x in inner.split(","))):
-                pname, _, default = item.partition("=")
-                pname = pname.strip().rstrip("?").strip()
-                default = default.strip()
-                if default:
-                    default = mock.loads(default)
-                else:
-                    default = None
-                params[pname] = default
+        cells = [c.strip() for c in line.strip().strip("|").split("|")]
+        if not line.startswith("|") or len(cells) != 6:
+            continue
+        mm = re.fullmatch(r"`([A-Za-z0-9_.]+)`", cells[0])
+        if mm:
+            last = mm.group(1)
+        pm = re.fullmatch(r"`([A-Za-z0-9_]+)`", cells[1])
+        if last is None or not pm:
+            continue
+        default = cells[3]
+        default = mock.loads(default.strip("`")) if default.startswith("`") else None
+        methods.setdefault(last, {})[pm.group(1)] = default
     return methods
 
 
@@ -147,8 +140,6 @@ def openrpc_document(s):
             if not s.check(pname in pnames, "%s param %s (documented) is in rpc.discover" %
                            (name, pname), "has %s" % sorted(pnames)):
                 continue
-            if pname == "scene":
-                default = "main"  # "scene defaults to main wherever it appears"
             if default is not None:
                 sch = resolve(r, pnames[pname]["schema"])
                 s.eq(sch.get("default"), default, "%s.%s default as documented" % (name, pname))

@@ -14,6 +14,9 @@ when the request asked for ``encoding: "base64"``).
             print(params["frame"], len(data))
         c.unsubscribe(sid)
 
+Params left as None are not sent, so the server applies the defaults of its method table
+(docs/protocol.md's method reference); ``Client.defaults(method)`` reads them from rpc.discover.
+
 Run as a module it mirrors the C ``volfx`` CLI: ``python3 -m volfx --port P info`` (with
 ``client/python`` on ``PYTHONPATH``). ``volfx.testing`` starts a private volfxd for a test
 suite and compares frames with golden images (docs/testing.md).
@@ -49,6 +52,11 @@ ERROR_NAMES = {
     -32004: "not found",
     -32005: "device error",
 }
+
+
+def _given(**params):
+    """The params that are not None: the ones left out take the server's defaults."""
+    return {k: v for k, v in params.items() if v is not None}
 
 
 class VolfxError(Exception):
@@ -93,6 +101,7 @@ class Client:
         self._next_id = 1
         self._queue = collections.deque()
         self.queue_dropped = 0
+        self._discovered = None
         if token:
             self.call("auth", token=token)
 
@@ -237,46 +246,46 @@ class Client:
     def shutdown(self):
         return self.call("server.shutdown")
 
-    def get(self, path=None, scene="main"):
+    def defaults(self, method):
+        """``{param: default}`` of ``method`` from the server's rpc.discover (read once): the
+        values its params take when left out."""
+        if self._discovered is None:
+            self._discovered = self.discover()
+        for m in self._discovered.get("methods", []):
+            if m.get("name") == method:
+                return {p["name"]: p["schema"]["default"] for p in m.get("params", [])
+                        if "default" in (p.get("schema") or {})}
+        raise ValueError("the server has no method %r" % method)
+
+    def get(self, path=None, scene=None):
         """The scene document, or the value at dotted ``path``."""
-        params = {"scene": scene}
-        if path is not None:
-            params["path"] = path
-        return self.call("scene.get", **params)
+        return self.call("scene.get", **_given(scene=scene, path=path))
 
-    def set(self, path, value, scene="main"):
+    def set(self, path, value, scene=None):
         """Sets one value at dotted ``path``; returns ``{"version": n}``."""
-        return self.call("scene.set", scene=scene, path=path, value=value)
+        return self.call("scene.set", **_given(scene=scene), path=path, value=value)
 
-    def patch(self, patch, scene="main"):
+    def patch(self, patch, scene=None):
         """Applies an RFC 7386 merge patch atomically; returns ``{"version": n}``."""
-        return self.call("scene.set", scene=scene, patch=patch)
+        return self.call("scene.set", **_given(scene=scene), patch=patch)
 
-    def step(self, n=1, dt=None, scene="main"):
-        params = {"scene": scene, "steps": n}
-        if dt is not None:
-            params["dt"] = dt
-        return self.call("sim.step", **params)
+    def step(self, n=None, dt=None, scene=None):
+        return self.call("sim.step", **_given(scene=scene, steps=n, dt=dt))
 
-    def play(self, rate=None, scene="main"):
-        params = {"scene": scene}
-        if rate is not None:
-            params["rate"] = rate
-        return self.call("sim.play", **params)
+    def play(self, rate=None, scene=None):
+        return self.call("sim.play", **_given(scene=scene, rate=rate))
 
-    def pause(self, scene="main"):
-        return self.call("sim.pause", scene=scene)
+    def pause(self, scene=None):
+        return self.call("sim.pause", **_given(scene=scene))
 
-    def render(self, width=512, height=512, format="png", **kw):
+    def render(self, width=None, height=None, format=None, **kw):
         """Renders one frame; returns ``(result, bytes)``. ``kw``: scene, aov, layers, camera,
         t, encoding, png_level."""
-        kw.setdefault("scene", "main")
-        return self.call_raw("render", dict(kw, width=width, height=height, format=format))
+        return self.call_raw("render", _given(width=width, height=height, format=format, **kw))
 
     def subscribe(self, **kw):
         """Starts a frame stream (``frames.subscribe``) and returns its id."""
-        kw.setdefault("scene", "main")
-        return self.call("frames.subscribe", **kw)["id"]
+        return self.call("frames.subscribe", **_given(**kw))["id"]
 
     def unsubscribe(self, sid):
         """Ends a stream; returns ``{"id", "sent", "dropped"}``. Its queued frames are dropped."""
@@ -366,14 +375,14 @@ def _frame_path(pattern, frame):
 
 
 def _frame_params(a):
-    p = {"scene": a.scene}
+    p = _given(scene=a.scene)
     for key in ("width", "height", "format", "aov", "fps", "encoding"):
         v = getattr(a, key, None)
         if v is not None:
             p[key] = v
     if getattr(a, "layers", None):
         p["layers"] = [x for x in a.layers.split(",") if x]
-    if p.get("aov", "beauty") != "beauty" and "format" not in p:
+    if p.get("aov") not in (None, "beauty") and "format" not in p:
         p["format"] = "f32"
     return p
 
@@ -474,7 +483,7 @@ def main(argv=None):
     ap.add_argument("--port", type=int, default=DEFAULT_PORT)
     ap.add_argument("--unix")
     ap.add_argument("--token", default=os.environ.get("VOLFX_TOKEN"))
-    ap.add_argument("--scene", default="main")
+    ap.add_argument("--scene", help="the scene (default: the server's default scene)")
     ap.add_argument("--timeout", type=float, default=60.0, help="seconds; 0 waits forever")
     sub = ap.add_subparsers(dest="command", required=True)
     for name in ("info", "pause", "stats", "discover", "scenes", "shutdown"):
