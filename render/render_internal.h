@@ -1,7 +1,7 @@
 /*
- * What the renderer's passes share: the renderer's state (device, kernels, buffers that live
- * across frames, host staging) and small helpers. Included only by server/render*.c; the rest
- * of the server sees render.h.
+ * What the renderer's passes share: the pass table's entry type, the frame the passes hand each
+ * other, the renderer's state (device, padding, each pass's own state) and small helpers.
+ * Included only by the files of render/; the rest of the server sees render.h.
  */
 #ifndef VOLFX_RENDER_INTERNAL_H
 #define VOLFX_RENDER_INTERNAL_H
@@ -33,9 +33,6 @@
 /* Most samples an anti-aliased frame is drawn with (render.antialias n is lowered until n^2
  * width height fits): the pixels of the largest frame the default limits allow. */
 #define AA_MAX_SAMPLES ((size_t)4096 * 4096)
-#define BVH_LEAF 4                /* Triangles per leaf the builder aims for. */
-#define BVH_BINS 16               /* Bins of the SAH split search. */
-#define FLUID_MAX_CELLS (1 << 21) /* The fluid grid's cells grow beyond h to stay under this. */
 
 /* A mesh object as the cached BVH saw it. */
 typedef struct mesh_key {
@@ -43,55 +40,73 @@ typedef struct mesh_key {
   float position[3], scale[3], rotation[3];
 } mesh_key_t;
 
-struct renderer {
-  cl_dev_t dev;
-  cl_kernel objects, tonemap, waves, waves_march, fluid;
-  size_t objects_local[2], tonemap_local[2], waves_local[2], fluid_local[2];
-  vfx_frame_t frame;    /* The current frame's constants, as the objects pass set them up. */
-  int objects_optional; /* Set by render.c: this frame's objects kernel need not run if empty. */
-  int objects_skipped;  /* It did not: r->linear and r->depth hold nothing of this frame. */
-
+/*
+ * What the passes of a frame hand each other. The frame plan (render.c) sizes the frame and
+ * says which passes run; the objects pass sets up the camera, the per-pixel buffers and the
+ * scene's geometry on the device, which later passes draw over and test against.
+ */
+typedef struct render_frame {
+  vfx_frame_t consts; /* The frame's constants, as the objects pass set them up. */
+  size_t pitch, rows; /* The drawn frame's size, padded to whole work-groups of every pass. */
   cl_mem linear, depth, rgba8; /* Per-pixel buffers, for cap_pixels pixels. */
   size_t cap_pixels;
-  size_t pitch, rows; /* The current frame's size, rounded up to whole objects work-groups. */
-  cl_mem objs;        /* Object records, cap_objs floats. */
-  size_t cap_objs;
-  cl_mem nodes, tris; /* The mesh BVH, cap_nodes and cap_tris records. */
-  size_t cap_nodes, cap_tris;
-  cl_mem wave_recs; /* Wave records, cap_waves floats. */
-  size_t cap_waves;
-  cl_mem wave_lists; /* Per waves work-group, the waves it may meet: cap_lists ints. */
-  size_t cap_lists;
-  cl_mem hbuf; /* The wave_h AOV, cap_h pixels (allocated at the first wave_h frame). */
-  size_t cap_h;
-  cl_mem fluid_cells, fluid_pos; /* The fluid grid: cap_fcells ints and cap_fpos floats. */
-  size_t cap_fcells, cap_fpos;
-  struct vol_state *vol; /* The volumes pass's kernels, caches and buffers (render_volume.c). */
+  int antialias; /* Samples per pixel along each axis: the drawn frame is n times the asked. */
 
-  /* The BVH on the device holds these mesh objects. Comparing them each frame, rather than the
-   * scene pointer, keeps the BVH across snapshots that changed other things (the camera, a
-   * colour) and cannot be fooled by a freed scene's address coming back. */
-  mesh_key_t *bvh_keys;
+  /* Set by the plan before the passes run. */
+  int fuse_tonemap;  /* The last drawing pass (PASS_TONEMAPS) tone-maps into rgba8 itself. */
+  int base_optional; /* The first pass need not draw an empty scene: only the fusing pass
+                        follows, and it starts from the background (set 'base_skipped'). */
+  int base_skipped;  /* It did not draw: linear and depth hold nothing of this frame. */
+
+  /* Where the picture or the aov asked for ends up, and its rows' pitch in pixels; the plan
+   * starts it at linear (or depth for the depth aov), and a pass that moves it says so. */
+  cl_mem out;
+  size_t out_pitch;
+
+  /* The scene's geometry on the device, written by the objects pass, read by the shadow map
+   * of the volumes pass: object records (cap_objs floats), the mesh BVH (cap_nodes and
+   * cap_tris records), and their host copies. */
+  cl_mem objs, nodes, tris;
+  size_t cap_objs, cap_nodes, cap_tris;
+  float *host_objs;
+  size_t host_objs_cap;
+  mesh_key_t *bvh_keys; /* The mesh objects the BVH holds, in scene order. */
   int bvh_nkeys;
   int bvh_ntri;
+} render_frame_t;
 
-  float *host_objs; /* Staging for the object records. */
-  size_t host_objs_cap;
-  float *host_waves; /* Staging for the wave records. */
-  size_t host_waves_cap;
-  int32_t *host_lists; /* Staging for the wave lists. */
-  size_t host_lists_cap;
-  int32_t *host_fcells; /* Staging for the fluid grid's (start, count) pairs. */
-  size_t host_fcells_cap;
-  float *host_fpos; /* Staging for the fluid grid's lists. */
-  size_t host_fpos_cap;
-  unsigned char *scratch; /* Tone-mapped bytes waiting for the PNG encoder. */
-  size_t scratch_cap;
+/* A pass may tone-map its own output when it is the last to draw (render_frame_t.fuse_tonemap). */
+#define PASS_TONEMAPS 1
 
-  int antialias;                /* The frame being drawn: render.antialias n, as lowered. */
-  cl_kernel resolve8, resolvef; /* render_resolve.c: 8-bit and linear output. */
-  cl_mem resolved;              /* The anti-aliased frame, cap_resolved bytes. */
-  size_t cap_resolved;
+/*
+ * One pass of the frame plan, in the table of render.c. Each pass keeps its kernels, buffers
+ * and caches in a state of its own, which 'init' creates and 'free' releases (also after a
+ * failed init). 'wants' says whether a frame needs the pass; 'run' draws it, and sets '*ran'
+ * to the name to record in the frame's timings, or NULL when it had nothing to do. 'reset',
+ * when not NULL, drops what the pass keeps of the scenes it drew.
+ */
+typedef struct render_pass {
+  const char *name;
+  unsigned layers; /* The LAYER_* bits it draws; 0 for a pass that finishes the picture. */
+  unsigned aovs;   /* Bit 1 << aov of each aov other than beauty the pass writes. */
+  int flags;       /* PASS_* */
+  int (*init)(renderer_t *r, void **state, char *err, size_t errlen);
+  void (*free)(renderer_t *r, void *state);
+  int (*wants)(const renderer_t *r, const render_scene_t *scene, const render_params_t *p);
+  int (*run)(renderer_t *r, void *state, const render_scene_t *scene, const render_params_t *p,
+             const char **ran, char *err, size_t errlen);
+  void (*reset)(renderer_t *r, void *state);
+} render_pass_t;
+
+#define RENDER_PASSES_MAX 16
+
+struct renderer {
+  cl_dev_t dev;
+  render_frame_t frame;
+  size_t row_pixels, row_unit;    /* What the padded pitch and rows are multiples of. */
+  size_t group[2];                /* The objects pass's work-group, which others may share. */
+  void *state[RENDER_PASSES_MAX]; /* Each pass's own state, in the table's order. */
+  int kernels_ready; /* Every pass's kernels were created: the program binary is worth saving. */
 };
 
 static inline void set_err(char *err, size_t errlen, const char *fmt, ...) {
@@ -145,6 +160,8 @@ static inline int grow_staging(void **p, size_t *cap, size_t need, size_t size) 
   return 0;
 }
 
+/* ---- render_frame.c: what every pass may use ---------------------------------------------- */
+
 /*
  * (Re)creates 'buf' with room for at least 'need' elements of 'size' bytes; with 'headroom' it
  * asks for half as much again, so that a slowly growing scene does not reallocate every frame.
@@ -152,55 +169,33 @@ static inline int grow_staging(void **p, size_t *cap, size_t need, size_t size) 
 int render_ensure_buffer(renderer_t *r, cl_mem *buf, size_t *cap, size_t need, size_t size,
                          cl_mem_flags flags, int headroom, char *err, size_t errlen);
 
-/* The pixels of a row that the padded buffers' pitch is a multiple of. */
-size_t render_row_pixels(const renderer_t *r);
+/* Makes the per-pixel buffers hold the frame's padded pitch x rows pixels. Returns 0 or a
+ * PROTO_E_* code. */
+int render_frame_buffers(renderer_t *r, char *err, size_t errlen);
 
-/* The passes, each in its own file. Each returns 0 or a PROTO_E_* code with 'err' set. */
+/* Widens what the frame's pitch and rows are multiples of (powers of two), for a pass whose
+ * work-groups cover 'pixels' x 'rows'. Called by the passes' init. */
+void render_frame_require(renderer_t *r, size_t pixels, size_t rows);
 
-/* render_objects.c: ray casts the objects into r->linear and r->depth and keeps the frame's
- * constants in r->frame for the passes after it. With r->objects_optional set and no object to
- * draw, it launches nothing and sets r->objects_skipped. */
-int render_pass_objects(renderer_t *r, const render_scene_t *scene, const render_params_t *p,
-                        char *err, size_t errlen);
-/* render_objects.c: drops the device BVH and the mesh references it keeps. */
-void render_bvh_forget(renderer_t *r);
+/* Picks a local size the device accepts for 'k', shrinking 'local' by halves if needed. */
+void render_fit_local(renderer_t *r, cl_kernel k, size_t *local, int dims);
 
-/* render.c: the tone-map pass's arguments for 'scene': 2^exposure and the TONE_OP_*. */
+/* The tone map's arguments for 'scene': 2^exposure and the TONE_OP_*. */
 void render_tone_args(const render_scene_t *scene, float *scale, int *op);
 
-/* render_waves.c: the energy waves' glow added to r->linear (WAVES_ADD), or added and tone-mapped
- * into r->rgba8 (WAVES_TONEMAP, which replaces the tone-map pass and runs even without a wave to
- * draw), or their H stored in r->hbuf (WAVES_STORE_H); WAVES_EMPTY when the objects pass was
- * skipped. 'samples' > 0 marches instead of the closed form. '*ran' says whether there was a
- * wave to draw. */
-int render_pass_waves(renderer_t *r, const render_scene_t *scene, int mode, int samples, int *ran,
-                      char *err, size_t errlen);
+/* A pass's zeroed state of 'size' bytes, stored in '*state' for its 'free' even when the init
+ * fails later. Returns it, or NULL with 'err' set. */
+void *render_state_new(void **state, size_t size, char *err, size_t errlen);
 
-/* render_fluid.c: the particles as metaballs, depth-tested against r->depth. */
-int render_pass_fluid(renderer_t *r, const render_scene_t *scene, int *ran, char *err,
-                      size_t errlen);
+/* Releases those of the 'nk' kernels and 'nb' buffers that are not NULL. */
+void render_release(cl_kernel *kernels, size_t nk, cl_mem *bufs, size_t nb);
 
-/* render_resolve.c: the kernels of the resolve pass (render_resolve_free undoes it, also after
- * a failure). Returns 0, or -1 with 'err' set. */
-int render_resolve_init(renderer_t *r, char *err, size_t errlen);
-void render_resolve_free(renderer_t *r);
+/* Runs the 2-D kernel 'k' over 'global' in work-groups of 'local' and waits for it, unless 'cr'
+ * (its arguments' setting) already failed. Returns 0, or -1 with 'err' naming the pass. */
+int render_launch(renderer_t *r, cl_int cr, cl_kernel k, const size_t global[2],
+                  const size_t local[2], const char *pass, char *err, size_t errlen);
 
-/* render_resolve.c: averages the n x n samples of each pixel of the frame 'p' asks for, drawn
- * at n times its size into r->linear, into r->resolved: 8-bit RGBA after the tone map, or
- * linear RGBA floats for rgbaf32. Its rows are render_resolved_pitch(p->width) pixels. */
-int render_pass_resolve(renderer_t *r, const render_scene_t *scene, const render_params_t *p, int n,
-                        char *err, size_t errlen);
-size_t render_resolved_pitch(uint32_t width);
-
-/* render_volume.c: creates the volume kernels and state (render_volume_free undoes it, also
- * after a failure). Returns 0, or -1 with 'err' set. */
-int render_volume_init(renderer_t *r, char *err, size_t errlen);
-void render_volume_free(renderer_t *r);
-
-/* render_volume.c: the scene's volumes (LAYER_VOLUMES in 'layers') and the cloud (LAYER_CLOUD),
- * lit through the objects' shadow map and composited over r->linear up to r->depth. '*ran'
- * says whether a kernel ran. */
-int render_pass_volumes(renderer_t *r, const render_scene_t *scene, unsigned layers, int *ran,
-                        char *err, size_t errlen);
+/* Drops the geometry's BVH and the mesh references it keeps. */
+void render_geometry_forget(render_frame_t *f);
 
 #endif
