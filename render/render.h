@@ -24,11 +24,14 @@ typedef struct renderer_opts {
  * Layers a render may pick (SPEC §3 'layers'), by wire name; LAYER_<ID> is bit i of the i-th.
  * Each is drawn by a pass of the frame plan (its entry's 'layers').
  */
+/* clang-format off */
 #define RENDER_LAYERS(X)                                                                           \
   X(OBJECTS, "objects")                                                                            \
   X(VOLUMES, "volumes")                                                                            \
-  X(CLOUD, "cloud") X(FLUID, "fluid") X(WAVES, "wave"                                              \
-                                               "s")
+  X(CLOUD, "cloud")                                                                                \
+  X(FLUID, "fluid")                                                                                \
+  X(WAVES, "waves")
+/* clang-format on */
 
 #define RENDER_LAYER_INDEX(id, name) LAYER_INDEX_##id,
 enum { RENDER_LAYERS(RENDER_LAYER_INDEX) RENDER_LAYER_COUNT };
