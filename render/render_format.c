@@ -5,12 +5,7 @@
  * jobs and frame subscriptions ask this table; a new format is an entry here and its encoder
  * in a file of its own (encode_png.c).
  */
-#include <stdio.h>
-#include <stdlib.h>
-#include <string.h>
-#include <time.h>
-
-#include "render.h"
+#include "render_internal.h"
 
 const char *const render_aov_names[] = {
     [AOV_BEAUTY] = "beauty", [AOV_DEPTH] = "depth", [AOV_WAVE_H] = "wave_h", [AOV_COUNT] = NULL};
@@ -127,13 +122,11 @@ int render_output_encode(const render_format_t *f, const render_params_t *p, ren
                          char *err, size_t errlen) {
   if (f->encode == NULL)
     return 0;
-  struct timespec t0, t1;
-  clock_gettime(CLOCK_MONOTONIC, &t0);
+  double t0 = now_ms();
   unsigned char *bytes = NULL;
   size_t n = 0;
   if (f->encode(out->bytes, p->width, p->height, p->png_level, &bytes, &n) != 0) {
-    if (err && errlen)
-      snprintf(err, errlen, "%s encoding of a %ux%u frame failed", f->name, p->width, p->height);
+    set_err(err, errlen, "%s encoding of a %ux%u frame failed", f->name, p->width, p->height);
     free(out->bytes);
     out->bytes = NULL;
     out->nbytes = 0;
@@ -142,8 +135,7 @@ int render_output_encode(const render_format_t *f, const render_params_t *p, ren
   free(out->bytes);
   out->bytes = bytes;
   out->nbytes = n;
-  clock_gettime(CLOCK_MONOTONIC, &t1);
-  double ms = (t1.tv_sec - t0.tv_sec) * 1e3 + (t1.tv_nsec - t0.tv_nsec) / 1e6;
+  double ms = now_ms() - t0;
   if (out->npasses < RENDER_MAX_PASSES) {
     out->passes[out->npasses].name = "encode";
     out->passes[out->npasses++].ms = ms;

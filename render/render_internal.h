@@ -41,8 +41,8 @@ typedef struct mesh_key {
 } mesh_key_t;
 
 /*
- * What the passes of a frame hand each other. The frame plan (render.c) sizes the frame and
- * says which passes run; the objects pass sets up the camera, the per-pixel buffers and the
+ * What the passes of a frame hand each other. The frame plan (render.c) sizes the frame and its
+ * per-pixel buffers and says which passes run; the objects pass sets up the camera and the
  * scene's geometry on the device, which later passes draw over and test against.
  */
 typedef struct render_frame {
@@ -79,11 +79,11 @@ typedef struct render_frame {
 #define PASS_TONEMAPS 1
 
 /*
- * One pass of the frame plan, in the table of render.c. Each pass keeps its kernels, buffers
- * and caches in a state of its own, which 'init' creates and 'free' releases (also after a
- * failed init). 'wants' says whether a frame needs the pass; 'run' draws it, and sets '*ran'
- * to the name to record in the frame's timings, or NULL when it had nothing to do. 'reset',
- * when not NULL, drops what the pass keeps of the scenes it drew.
+ * One pass of the frame plan, listed in RENDER_PASSES (render.h). Each pass keeps its kernels,
+ * buffers and caches in a state of its own, which 'init' creates and 'free' releases (also
+ * after a failed init). 'wants' says whether a frame needs the pass; 'run' draws it, and sets
+ * '*ran' to the name to record in the frame's timings, or NULL when it had nothing to do.
+ * 'reset', when not NULL, drops what the pass keeps of the scenes it drew.
  */
 typedef struct render_pass {
   const char *name;
