@@ -13,6 +13,7 @@
  * off the pass for the paper-002 scene's ten objects with shadow rays.
  */
 #include "common.h"
+#include "ellipsoid.h"
 
 typedef float16 floatv;
 typedef int16 intv;
@@ -289,20 +290,11 @@ __kernel void objects(vfx_frame_t f, __global const float *restrict objs,
   intv lit = hit & (ndl > 0.0f);
   for (int i = 0; i < f.nsph && any(lit); i++) {
     __global const float *s = objs + i * SPH_STRIDE;
-    __global const float *m = s + SPH_MINV;
     floatv wx = sx - s[0], wy = sy - s[1], wz = sz - s[2];
     if (!any(lit & may_block(-wx, -wy, -wz, s[SPH_RADIUS], lx, ly, lz)))
       continue;
-    floatv ox = m[0] * wx + m[1] * wy + m[2] * wz;
-    floatv oy = m[3] * wx + m[4] * wy + m[5] * wz;
-    floatv oz = m[6] * wx + m[7] * wy + m[8] * wz;
-    float qx = m[0] * lx + m[1] * ly + m[2] * lz;
-    float qy = m[3] * lx + m[4] * ly + m[5] * lz;
-    float qz = m[6] * lx + m[7] * ly + m[8] * lz;
-    float a = qx * qx + qy * qy + qz * qz;
-    floatv b = qx * ox + qy * oy + qz * oz;
-    floatv cx = qy * oz - qz * oy, cy = qz * ox - qx * oz, cz = qx * oy - qy * ox;
-    floatv disc = 0.25f * a - (cx * cx + cy * cy + cz * cz);
+    float a;
+    floatv b, disc = ellipsoid_disc(s + SPH_MINV, wx, wy, wz, lx, ly, lz, &a, &b);
     /* The far root (-b + sqrt(disc)) / a is ahead exactly when b < 0 or b^2 < disc. */
     lit &= ~((disc >= 0.0f) & ((b < 0.0f) | (b * b < disc)));
   }

@@ -9,22 +9,7 @@
 #define VOLFX_KERNELS_TONEMAP_H
 
 #include "common.h"
-
-/*
- * 1 / sqrt(x) for finite x > 0 and a / b for finite a and b >= 0.14, through the CPU's
- * reciprocal square-root and reciprocal estimates with a Newton step (vrsqrt14ps, vrcp14ps)
- * rather than vsqrtps and vdivps, which share one slow unit. The pragma is kept to these
- * helpers, whose callers keep their arguments in range.
- */
-static inline float16 tone_rsqrt(float16 x) {
-#pragma float_control(precise, off)
-  return 1.0f / sqrt(x);
-}
-
-static inline float16 tone_div(float16 a, float16 b) {
-#pragma float_control(precise, off)
-  return a / b;
-}
+#include "fastmath.h"
 
 /*
  * The sRGB encoding of 'x' in [0, 1]. Above the linear toe, 1.055 x^(1/2.4) - 0.055 is a
@@ -33,7 +18,7 @@ static inline float16 tone_div(float16 a, float16 b) {
  * vectorise, and this takes a third of the time of the square roots it replaced.
  */
 static inline float16 tone_srgb(float16 x) {
-  float16 s = tone_rsqrt(tone_rsqrt(max(x, 0.0031308f)));
+  float16 s = fast_rsqrt(fast_rsqrt(max(x, 0.0031308f)));
   float16 p = fma(s, -0.0627589896f, 0.272752255f);
   p = fma(p, s, -0.557555676f);
   p = fma(p, s, 1.24421394f);
@@ -45,14 +30,14 @@ static inline float16 tone_srgb(float16 x) {
 /*
  * Applies the operator 'op' (TONE_OP_*) to exposed linear values; the results are in [0, 1].
  * Values are first clamped to 1e18, where every operator gives 1 already, so that nothing
- * overflows and tone_div never sees an infinity.
+ * overflows and fast_div never sees an infinity.
  */
 static inline float16 tone_op(float16 x, int op) {
   x = clamp(x, 0.0f, 1e18f);
   if (op == TONE_OP_REINHARD)
-    x = tone_div(x, 1.0f + x);
+    x = fast_div(x, 1.0f + x);
   else if (op == TONE_OP_ACES) /* Narkowicz's fit of the ACES filmic curve, as it is. */
-    x = tone_div(x * (2.51f * x + 0.03f), x * (2.43f * x + 0.59f) + 0.14f);
+    x = fast_div(x * (2.51f * x + 0.03f), x * (2.43f * x + 0.59f) + 0.14f);
   return min(x, 1.0f);
 }
 

@@ -43,6 +43,7 @@
  */
 #include "common.h"
 #include "volume.h"
+#include "ellipsoid.h"
 
 typedef float16 vf;
 typedef int16 vi;
@@ -582,23 +583,14 @@ __kernel void shadow_map(vfx_frame_t f, vfx_shadow_t sh, __global const float *r
 
   for (int i = 0; i < f.nsph; i++) {
     __global const float *sp = objs + i * SPH_STRIDE;
-    __global const float *m = sp + SPH_MINV;
     vf wx = ox - sp[0], wy = oy - sp[1], wz = oz - sp[2];
     /* Lines farther from the centre than the bounding radius miss. */
     vf cx = wy * dz - wz * dy, cy = wz * dx - wx * dz, cz = wx * dy - wy * dx;
     float rad = sp[SPH_RADIUS];
     if (!any(cx * cx + cy * cy + cz * cz <= rad * rad))
       continue;
-    vf px = m[0] * wx + m[1] * wy + m[2] * wz;
-    vf py = m[3] * wx + m[4] * wy + m[5] * wz;
-    vf pz = m[6] * wx + m[7] * wy + m[8] * wz;
-    float qx = m[0] * dx + m[1] * dy + m[2] * dz;
-    float qy = m[3] * dx + m[4] * dy + m[5] * dz;
-    float qz = m[6] * dx + m[7] * dy + m[8] * dz;
-    float a = qx * qx + qy * qy + qz * qz;
-    vf b = qx * px + qy * py + qz * pz;
-    vf kx = qy * pz - qz * py, ky = qz * px - qx * pz, kz = qx * py - qy * px;
-    vf disc = 0.25f * a - (kx * kx + ky * ky + kz * kz);
+    float a;
+    vf b, disc = ellipsoid_disc(sp + SPH_MINV, wx, wy, wz, dx, dy, dz, &a, &b);
     vf t = (-b - sqrt(fmax(disc, 0.0f))) / a;
     best = select(best, t, (disc >= 0.0f) & (t < best));
   }

@@ -1,6 +1,6 @@
 /*
  * Definitions shared by the volume kernels (kernels/volume.cl) and the host side of the volume
- * pass (server/render_volume.c): the layout of a volume record, the shadow map's constants and
+ * pass (render/render_volume.c): the layout of a volume record, the shadow map's constants and
  * the packet width. Valid OpenCL C and valid C11, like common.h.
  *
  * A volume reaches the kernel as VOL_STRIDE floats, and its grid as dims voxels (x fastest) of a

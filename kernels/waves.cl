@@ -30,6 +30,7 @@
  * and when the objects pass had nothing to draw (WAVES_EMPTY) it starts from the background.
  */
 #include "common.h"
+#include "fastmath.h"
 #include "tonemap.h"
 
 /* A packet's lanes: WAVES_PACKET (common.h; 16, which render_waves.c asserts) pixels of a row,
@@ -49,23 +50,6 @@ typedef int16 wint;
 /* Below this m^2 a ray counts as parallel to the axis: rho is then constant along it. At
  * m^2 = 1e-24 rho changes by 1e-12 per unit of distance. */
 #define WAVE_PARALLEL 1e-24f
-
-/*
- * 1 / sqrt(x) for finite x > 0, and a / b for finite a and b != 0, to within a few ulp. The
- * pragma lets LLVM use the CPU's reciprocal estimates with one Newton step (vrsqrt14ps,
- * vrcp14ps), which run beside the rest of the maths, instead of vsqrtps and vdivps, which
- * share one slow divider: 10-15% off the pass. It also lets LLVM assume no infinities or NaNs,
- * so it is kept to these helpers, whose callers keep their arguments finite and non-zero.
- */
-static inline wfloat wave_rsqrt(wfloat x) {
-#pragma float_control(precise, off)
-  return 1.0f / sqrt(x);
-}
-
-static inline wfloat wave_div(wfloat a, wfloat b) {
-#pragma float_control(precise, off)
-  return a / b;
-}
 
 /*
  * log(u) for finite u >= 1, without the builtin log, whose extended-precision reduction and
@@ -97,11 +81,11 @@ static inline wfloat wave_recip_est(wfloat x) {
   return native_recip(x);
 }
 
-/* sqrt(x) for finite x >= 0, by wave_rsqrt, where it is used; below FLT_MIN (negative x
+/* sqrt(x) for finite x >= 0, by fast_rsqrt, where it is used; below FLT_MIN (negative x
  * included) it is sqrt(FLT_MIN), about 1e-19, for callers that select it away there. */
 static inline wfloat wave_sqrt(wfloat x) {
   x = max(x, FLT_MIN);
-  return x * wave_rsqrt(x);
+  return x * fast_rsqrt(x);
 }
 
 /*
@@ -116,7 +100,7 @@ static inline void wave_rays(const vfx_frame_t *f, int x0, int y, wfloat *dx, wf
   wfloat x = f->base[0] + px * f->step_x[0] + py * f->step_y[0];
   wfloat yv = f->base[1] + px * f->step_x[1] + py * f->step_y[1];
   wfloat z = f->base[2] + px * f->step_x[2] + py * f->step_y[2];
-  wfloat il = wave_rsqrt(x * x + yv * yv + z * z);
+  wfloat il = fast_rsqrt(x * x + yv * yv + z * z);
   *dx = x * il, *dy = yv * il, *dz = z * il;
 }
 
@@ -137,14 +121,14 @@ static inline void wave_rays(const vfx_frame_t *f, int x0, int y, wfloat *dx, wf
 static inline wfloat wave_asinh_span(wfloat xa, wfloat xb, wfloat dxm, wfloat m, wfloat inv_m) {
   wfloat p = min(fabs(xa), fabs(xb)), q = max(fabs(xa), fabs(xb));
   wfloat p2 = fma(p, p, 1.0f), q2 = fma(q, q, 1.0f);
-  wfloat sp = p2 * wave_rsqrt(p2), sq = q2 * wave_rsqrt(q2);
+  wfloat sp = p2 * fast_rsqrt(p2), sq = q2 * fast_rsqrt(q2);
   wint same = (xa >= 0.0f) | (xb <= 0.0f);
   wfloat ssum = sq + sp, spq = fma(sq, sp, 1.0f);
   wfloat num =
       select(fma(q * p + q * sp + p * sq, spq, fma(q * q, p2, p * p)), dxm * (ssum + q + p), same);
   wfloat den = select(spq, ssum * (p + sp), same);
   /* z is delta / m for the same-sign form (dxm carries the 1 / m) and delta otherwise. */
-  wfloat z = wave_div(num, den);
+  wfloat z = fast_div(num, den);
   wfloat delta = select(z, z * m, same);
   /* log1p(delta) = log(u) - ((u - 1) - delta) / u for u = 1 + delta rounded: the correction is
    * under an ulp of u, so the reciprocal estimate is ample for it. */
@@ -204,7 +188,7 @@ static inline wave_ray_t wave_setup(__global const float *restrict wv, float nea
   /* A ray in a plane s = const gets a tiny k of the right sign: its crossings move far away, to
    * the side that puts the whole ray in the right region. */
   w.k = select(k, select((wfloat)1e-30f, (wfloat)-1e-30f, k < 0.0f), fabs(k) < 1e-30f);
-  wfloat ik = wave_div((wfloat)1.0f, w.k);
+  wfloat ik = fast_div((wfloat)1.0f, w.k);
   w.t0 = -s0 * ik;
   w.tl = (len - s0) * ik;
   w.slab_in = min(w.t0, w.tl);
@@ -219,7 +203,7 @@ static inline wave_ray_t wave_setup(__global const float *restrict wv, float nea
   in = select(in, min(in, -w.bl - sl), dl >= 0.0f);
   out = select(out, max(out, -w.bl + sl), dl >= 0.0f);
   wfloat dc = w.m2 * r2 - w.c * w.c;
-  wfloat sc = wave_sqrt(dc), im2 = wave_div((wfloat)1.0f, max(w.m2, WAVE_PARALLEL));
+  wfloat sc = wave_sqrt(dc), im2 = fast_div((wfloat)1.0f, max(w.m2, WAVE_PARALLEL));
   wfloat cyl_in = select((-w.bp - sc) * im2, (wfloat)-INFINITY, w.par);
   wfloat cyl_out = select((-w.bp + sc) * im2, (wfloat)INFINITY, w.par);
   wint cyl = select(dc >= 0.0f, (wint)(wv[WAVE_GP] < r2 ? -1 : 0), w.par);
@@ -245,7 +229,7 @@ static inline wfloat wave_exact(__global const float *restrict wv, const wave_ra
   float a = wv[WAVE_A], b = wv[WAVE_B], eps2 = wv[WAVE_EPS2];
   /* The region s <= 0 is the part of [lo, hi] before t0 for k > 0 and after it for k < 0. */
   wfloat mid = clamp(w->t0, w->lo, w->hi);
-  wfloat inv_d = wave_rsqrt(w->v2 + eps2);
+  wfloat inv_d = fast_rsqrt(w->v2 + eps2);
   wint ahead = w->k > 0.0f;
   /* Each side is skipped when it is empty for the whole packet, as inside the beam's body. */
   wfloat h = 0.0f;
@@ -258,8 +242,8 @@ static inline wfloat wave_exact(__global const float *restrict wv, const wave_ra
 
   wfloat ma = clamp(w->slab_in, w->lo, w->hi), mb = clamp(w->slab_out, w->lo, w->hi);
   if (any(mb > ma)) {
-    wfloat inv_s = wave_rsqrt(max(fma(w->c, w->c, eps2 * w->m2), FLT_MIN));
-    wfloat inv_m = wave_rsqrt(max(w->m2, FLT_MIN));
+    wfloat inv_s = fast_rsqrt(max(fma(w->c, w->c, eps2 * w->m2), FLT_MIN));
+    wfloat inv_m = fast_rsqrt(max(w->m2, FLT_MIN));
     wfloat m = w->m2 * inv_m;
     wfloat xa = fma(w->m2, ma, w->bp) * inv_s, xb = fma(w->m2, mb, w->bp) * inv_s;
     wfloat beam = wave_asinh_span(xa, xb, (mb - ma) * m * inv_s, m, inv_m);
@@ -271,7 +255,7 @@ static inline wfloat wave_exact(__global const float *restrict wv, const wave_ra
   wfloat fa = clamp(select(w->lo, w->tl, ahead), w->lo, w->hi);
   wfloat fb = clamp(select(w->tl, w->hi, ahead), w->lo, w->hi);
   if (any(fb > fa))
-    h += b * wave_sphere_span(fa, fb, w->bl, wave_rsqrt(w->vl2 + eps2));
+    h += b * wave_sphere_span(fa, fb, w->bl, fast_rsqrt(w->vl2 + eps2));
   return h;
 }
 

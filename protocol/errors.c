@@ -44,10 +44,8 @@ void proto_limits_default(proto_limits_t *l) {
 }
 
 /* Wire names, indexed by proto_format_t. */
-static const char *const format_names[PROTO_FMT_COUNT] = {
-    [PROTO_FMT_PNG] = "png", [PROTO_FMT_RGBA8] = "rgba8", [PROTO_FMT_RGBAF32] = "rgbaf32",
-    [PROTO_FMT_F32] = "f32", [PROTO_FMT_U8] = "u8",
-};
+#define PROTO_FORMAT_NAME(id, name) [PROTO_FMT_##id] = name,
+static const char *const format_names[PROTO_FMT_COUNT] = {PROTO_FORMATS(PROTO_FORMAT_NAME)};
 
 /* The wire name of 'f', or NULL when 'f' is not a format. */
 const char *proto_format_name(proto_format_t f) {

@@ -52,15 +52,17 @@ typedef struct proto_limits {
 
 void proto_limits_default(proto_limits_t *l);
 
-/* Attachment formats (SPEC §3). */
-typedef enum {
-  PROTO_FMT_PNG,     /* 8-bit RGBA PNG file. */
-  PROTO_FMT_RGBA8,   /* Raw 8-bit RGBA, rows top to bottom. */
-  PROTO_FMT_RGBAF32, /* Raw linear float RGBA before tone mapping, little-endian. */
-  PROTO_FMT_F32,     /* One little-endian float per pixel or element. */
-  PROTO_FMT_U8,      /* One byte per element. */
-  PROTO_FMT_COUNT
-} proto_format_t;
+/* Attachment formats (SPEC §3): X(ID, wire name) gives PROTO_FMT_<ID>. A frame format also has
+ * an entry in the renderer's format table (render/render_format.c). */
+#define PROTO_FORMATS(X)                                                                           \
+  X(PNG, "png")         /* 8-bit RGBA PNG file. */                                                 \
+  X(RGBA8, "rgba8")     /* Raw 8-bit RGBA, rows top to bottom. */                                  \
+  X(RGBAF32, "rgbaf32") /* Raw linear float RGBA before tone mapping, little-endian. */            \
+  X(F32, "f32")         /* One little-endian float per pixel or element. */                        \
+  X(U8, "u8")           /* One byte per element. */
+
+#define PROTO_FORMAT_ENUM(id, name) PROTO_FMT_##id,
+typedef enum { PROTO_FORMATS(PROTO_FORMAT_ENUM) PROTO_FMT_COUNT } proto_format_t;
 
 /* "png", "rgba8", ... ; NULL for an out-of-range value. */
 const char *proto_format_name(proto_format_t f);

@@ -56,17 +56,17 @@ cJSON *render_job_times(const job_t *j);
       {.name = "format",                                                                           \
        .type = SCH_ENUM,                                                                           \
        .desc = "png, rgba8 or rgbaf32 for the beauty aov; f32 for depth and wave_h.",              \
-       .enum_values = render_formats,                                                              \
+       .enum_values = render_format_names,                                                         \
        .def_str = "png"},                                                                          \
       {.name = "aov",                                                                              \
        .type = SCH_ENUM,                                                                           \
        .desc = "beauty, depth (f32 distance along the ray, +inf for none) or wave_h.",             \
-       .enum_values = render_aovs,                                                                 \
+       .enum_values = render_aov_names,                                                            \
        .def_str = "beauty"},                                                                       \
       {.name = "layers",                                                                           \
        .type = SCH_ARRAY,                                                                          \
        .desc = "Effects to draw; default all.",                                                    \
-       .max = 5,                                                                                   \
+       .max = RENDER_LAYER_COUNT,                                                                  \
        .items = &render_layer_item,                                                                \
        .flags = SCH_NO_DEFAULT},                                                                   \
       {.name = "camera",                                                                           \
@@ -88,8 +88,6 @@ cJSON *render_job_times(const job_t *j);
     .enum_values = render_encodings, .def_str = "binary"                                           \
   }
 
-extern const char *const render_formats[];
-extern const char *const render_aovs[];
 extern const char *const render_encodings[];
 extern const sch_field_t render_layer_item;
 

@@ -471,15 +471,6 @@ static int frames_fit(call_t *call, uint64_t frames) {
   return 0;
 }
 
-/* The file name extension of each format. */
-static const char *ext_of(const char *format) {
-  static const char *const exts[] = {"png", "rgba8", "rgbaf32", "f32"};
-  for (size_t i = 0; i < sizeof exts / sizeof *exts; i++)
-    if (strcmp(format, exts[i]) == 0)
-      return exts[i];
-  return "bin";
-}
-
 static int running_jobs(const server_t *s, const char *scene) {
   int n = 0;
   for (const seq_job_t *job = s->jobs; job; job = job->next)
@@ -623,7 +614,8 @@ static void render_sequence(call_t *call) {
   seq_job_t *job = job_new(call, e, dir);
   if (!job)
     return;
-  job->ext = ext_of(cJSON_GetObjectItem(p, "format")->valuestring);
+  /* A frame's file is named after its format (render_format_table). */
+  job->ext = render_format_find(cJSON_GetObjectItem(p, "format")->valuestring)->name;
   job->first = job->next_frame = first;
   job->last = last;
   job->step = step;

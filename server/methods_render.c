@@ -11,13 +11,10 @@
 #include "dispatch.h"
 #include "frames.h"
 
-const char *const render_formats[] = {"png", "rgba8", "rgbaf32", "f32", NULL};
-const char *const render_aovs[] = {"beauty", "depth", "wave_h", NULL};
 const char *const render_encodings[] = {"binary", "base64", NULL};
-static const char *const layer_names[] = {"objects", "volumes", "cloud", "fluid", "waves", NULL};
 const sch_field_t render_layer_item = {.type = SCH_ENUM,
                                        .desc = "objects, volumes, cloud, fluid or waves.",
-                                       .enum_values = layer_names};
+                                       .enum_values = render_layer_names};
 
 static void vec3_of(const cJSON *o, const char *name, float out[3]) {
   const cJSON *v = cJSON_GetObjectItem(o, name);
@@ -80,27 +77,20 @@ int render_job_from_params(server_t *s, scene_entry_t *e, const cJSON *params, j
   memset(j, 0, sizeof *j);
   j->params.width = (uint32_t)w;
   j->params.height = (uint32_t)h;
-  j->params.format =
-      (proto_format_t)proto_format_parse(cJSON_GetObjectItem(params, "format")->valuestring);
-  const char *aov = cJSON_GetObjectItem(params, "aov")->valuestring;
-  j->params.aov = strcmp(aov, "depth") == 0    ? AOV_DEPTH
-                  : strcmp(aov, "wave_h") == 0 ? AOV_WAVE_H
-                                               : AOV_BEAUTY;
-  int beauty_format = j->params.format != PROTO_FMT_F32;
-  if ((j->params.aov == AOV_BEAUTY) != beauty_format) {
+  j->params.format = render_format_find(cJSON_GetObjectItem(params, "format")->valuestring)->id;
+  j->params.aov = (aov_t)render_aov_parse(cJSON_GetObjectItem(params, "aov")->valuestring);
+  char why[256];
+  if (render_format_check(j->params.format, (int)j->params.aov, why, sizeof why) != 0) {
     snprintf(path, pathlen, "format");
-    snprintf(msg, msglen,
-             "invalid params: format '%s' does not go with aov '%s' (beauty: png, rgba8, "
-             "rgbaf32; depth and wave_h: f32)",
-             proto_format_name(j->params.format), aov);
+    snprintf(msg, msglen, "invalid params: %s", why);
     return PROTO_E_INVALID_PARAMS;
   }
   const cJSON *layers = cJSON_GetObjectItem(params, "layers");
   if (layers) {
     const cJSON *it;
     cJSON_ArrayForEach(it, layers) {
-      for (int i = 0; layer_names[i]; i++)
-        if (strcmp(it->valuestring, layer_names[i]) == 0)
+      for (int i = 0; render_layer_names[i]; i++)
+        if (strcmp(it->valuestring, render_layer_names[i]) == 0)
           j->params.layers |= 1u << i;
     }
   } else {
@@ -168,10 +158,7 @@ static void on_render_done(job_t *j) {
     cJSON_AddNumberToObject(r, "width", j->params.width);
     cJSON_AddNumberToObject(r, "height", j->params.height);
     cJSON_AddStringToObject(r, "format", fmt);
-    cJSON_AddStringToObject(r, "aov",
-                            j->params.aov == AOV_DEPTH    ? "depth"
-                            : j->params.aov == AOV_WAVE_H ? "wave_h"
-                                                          : "beauty");
+    cJSON_AddStringToObject(r, "aov", render_aov_names[j->params.aov]);
     cJSON_AddNumberToObject(r, "frame", (double)j->frame);
     cJSON_AddNumberToObject(r, "time", j->time);
     cJSON_AddItemToObject(r, "work_ms", render_job_times(j));
@@ -187,12 +174,11 @@ static void on_render_done(job_t *j) {
   free(rc);
 }
 
-/* A bound on the bytes the answer to 'j' writes: its line and the frame, a PNG at worst a little
- * over the raw pixels (stored deflate blocks, filter bytes, chunks); base64 a third more. */
+/* A bound on the bytes the answer to 'j' writes: its line and the frame, as its format bounds
+ * it; base64 a third more. */
 size_t render_answer_bound(const job_t *j, int base64) {
-  size_t npix = (size_t)j->params.width * j->params.height;
-  size_t px = j->params.format == PROTO_FMT_RGBAF32 ? 16 : 4;
-  size_t n = px * npix + (j->params.format == PROTO_FMT_PNG ? npix / 64 + j->params.height : 0);
+  size_t n =
+      render_format_bound(render_format_get(j->params.format), j->params.width, j->params.height);
   return (base64 ? proto_b64_encoded_len(n) : n) + 4096;
 }
 

@@ -73,18 +73,17 @@ static void worker_main(void *arg) {
     }
     if (j->has_camera)
       j->params.camera = &j->camera;
-    /* A PNG frame is rendered as RGBA8 here and encoded by the encoder thread. */
-    int png = j->params.format == PROTO_FMT_PNG;
-    if (png)
-      j->params.format = PROTO_FMT_RGBA8;
+    /* A format with an encoder is rendered to its raw pixels here and encoded by the encoder
+     * thread. */
+    int encode = render_format_get(j->params.format)->encode != NULL;
+    j->params.raw = encode;
     j->code = renderer_render(w->renderer, j->scene, &j->params, &j->out, j->err, sizeof j->err);
     j->t_done_ns = mono_ns();
     render_scene_unref(j->scene);
     j->scene = NULL;
 
     uv_mutex_lock(&w->mu);
-    if (png) {
-      j->params.format = PROTO_FMT_PNG;
+    if (encode) {
       if (j->code == 0) {
         push(&w->encode_head, &w->encode_tail, j);
         uv_cond_signal(&w->encode_cv);
@@ -97,30 +96,10 @@ static void worker_main(void *arg) {
   uv_mutex_unlock(&w->mu);
 }
 
-/* Encodes one rendered RGBA8 frame as PNG in place, recording the "encode" pass. */
+/* Encodes one rendered frame in place with its format's encoder, recording the "encode" pass. */
 static void encode_job(job_t *j) {
-  uint64_t t0 = mono_ns();
-  unsigned char *png = NULL;
-  size_t n = 0;
-  if (encode_png(j->out.bytes, j->params.width, j->params.height, j->params.png_level, &png, &n) !=
-      0) {
-    j->code = PROTO_E_INTERNAL;
-    snprintf(j->err, sizeof j->err, "PNG encoding of a %ux%u frame failed", j->params.width,
-             j->params.height);
-    free(j->out.bytes);
-    j->out.bytes = NULL;
-    j->out.nbytes = 0;
-    return;
-  }
-  free(j->out.bytes);
-  j->out.bytes = png;
-  j->out.nbytes = n;
-  double ms = (double)(mono_ns() - t0) / 1e6;
-  if (j->out.npasses < RENDER_MAX_PASSES) {
-    j->out.passes[j->out.npasses].name = "encode";
-    j->out.passes[j->out.npasses++].ms = ms;
-  }
-  j->out.total_ms += ms;
+  j->code = render_output_encode(render_format_get(j->params.format), &j->params, &j->out, j->err,
+                                 sizeof j->err);
   j->t_done_ns = mono_ns();
 }
 

@@ -1084,6 +1084,32 @@ static void test_devices_and_kernels(void) {
         "the build log is missing from \"%s\"", err);
 }
 
+/* The format and layer tables agree with the protocol's names and with themselves. */
+static void test_tables(void) {
+  int n = 0;
+  for (const render_format_t *f = render_format_table; f->name; f++, n++) {
+    CHECK(render_format_names[n] && strcmp(render_format_names[n], f->name) == 0,
+          "render_format_names[%d] is \"%s\"", n, f->name);
+    CHECK(proto_format_name(f->id) && strcmp(proto_format_name(f->id), f->name) == 0,
+          "format %s is the protocol's", f->name);
+    CHECK(render_format_find(f->name) == f && render_format_get(f->id) == f, "%s found", f->name);
+    CHECK(f->aovs != 0 && f->bytes_per_pixel > 0 && f->mime, "%s is complete", f->name);
+    CHECK(render_format_bound(f, 64, 32) >= 64 * 32 * f->bytes_per_pixel, "%s bound", f->name);
+  }
+  CHECK(render_format_names[n] == NULL, "as many names as formats");
+  CHECK(render_format_get(PROTO_FMT_U8) == NULL, "u8 is no frame format");
+  for (int a = 0; a < AOV_COUNT; a++)
+    CHECK(render_aov_parse(render_aov_names[a]) == a, "aov %s", render_aov_names[a]);
+  CHECK(render_aov_parse("nope") == -1, "unknown aov");
+  int layers = 0;
+  while (render_layer_names[layers])
+    layers++;
+  CHECK(layers == RENDER_LAYER_COUNT && LAYER_ALL == (1u << layers) - 1, "%d layers", layers);
+  CHECK(strcmp(render_layer_names[0], "objects") == 0 && LAYER_OBJECTS == 1 &&
+            strcmp(render_layer_names[4], "waves") == 0 && LAYER_WAVES == 1 << 4,
+        "layer bits follow the names");
+}
+
 int main(void) {
   char tmpl[] = "/tmp/volfx-test-render-XXXXXX";
   tmp_dir = mkdtemp(tmpl);
@@ -1109,6 +1135,7 @@ int main(void) {
   test_tonemap_and_formats();
   test_antialias();
   test_bad_params();
+  test_tables();
   test_devices_and_kernels();
 
   renderer_destroy(R);

@@ -1,5 +1,5 @@
 /*
- * PNG encoding (server/encode.c): every image encoded at the fast default (deflated in parts on
+ * PNG encoding (render/encode_png.c): every image encoded at the fast default (deflated in parts on
  * several threads) and at explicit levels (libpng) is decoded by libpng, an independent reader,
  * back to exactly the bytes encoded; sizes from one pixel to frames large enough to be split
  * into parts of uneven height, and images that compress well and badly.

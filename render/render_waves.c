@@ -9,20 +9,36 @@
 
 _Static_assert(WAVES_PACKET == 16, "kernels/waves.cl shades packets of 16 pixels in float16 lanes");
 
+/* The waves pass's kernels, device buffers and host staging. */
+typedef struct waves_state {
+  cl_kernel waves, waves_march; /* The closed form, and the ray march for comparisons. */
+  size_t waves_local[2];
+  cl_mem wave_recs; /* Wave records, cap_waves floats. */
+  size_t cap_waves;
+  cl_mem wave_lists; /* Per waves work-group, the waves it may meet: cap_lists ints. */
+  size_t cap_lists;
+  cl_mem hbuf; /* The wave_h AOV, cap_h pixels (allocated at the first wave_h frame). */
+  size_t cap_h;
+  float *host_waves; /* Staging for the wave records. */
+  size_t host_waves_cap;
+  int32_t *host_lists; /* Staging for the wave lists. */
+  size_t host_lists_cap;
+} waves_state_t;
+
 /*
- * Packs the usable waves of 'scene' into r->host_waves as records for the eye 'eye' (WAVE_* of
+ * Packs the usable waves of 'scene' into ws->host_waves as records for the eye 'eye' (WAVE_* of
  * common.h), working in double so that the offsets from the eye are exact to float rounding.
  * A wave with a zero or non-finite axis, a radius, softening or clamp that is not positive, or
  * any non-finite number is left out (the scene model refuses them; this keeps the kernel safe
  * whatever it is given). Returns the number packed, or -1 when out of memory.
  */
-static int pack_waves(renderer_t *r, const render_scene_t *scene, const float eye[3]) {
+static int pack_waves(waves_state_t *ws, const render_scene_t *scene, const float eye[3]) {
   size_t need = (size_t)(scene->nwaves > 0 ? scene->nwaves : 1) * WAVE_STRIDE;
-  if (need > r->host_waves_cap) {
-    float *p = realloc(r->host_waves, need * sizeof(float));
+  if (need > ws->host_waves_cap) {
+    float *p = realloc(ws->host_waves, need * sizeof(float));
     if (p == NULL)
       return -1;
-    r->host_waves = p, r->host_waves_cap = need;
+    ws->host_waves = p, ws->host_waves_cap = need;
   }
   int n = 0;
   for (int i = 0; i < scene->nwaves; i++) {
@@ -40,7 +56,7 @@ static int pack_waves(renderer_t *r, const render_scene_t *scene, const float ey
         !(wv->softening > 0) || !(wv->clamp > 0))
       continue;
     double w[3], s0 = 0, gp = 0, bl = wv->length > 0 ? wv->length : 0;
-    float *rec = r->host_waves + (size_t)n++ * WAVE_STRIDE;
+    float *rec = ws->host_waves + (size_t)n++ * WAVE_STRIDE;
     memset(rec, 0, WAVE_STRIDE * sizeof(float));
     for (int k = 0; k < 3; k++) {
       d[k] /= len;
@@ -115,7 +131,7 @@ static int may_reach(const double plane[3], const double m[3], const double e[3]
 }
 
 /*
- * Writes to r->host_lists, for each work-group of the waves pass (a tile of the padded image),
+ * Writes to ws->host_lists, for each work-group of the waves pass (a tile of the padded image),
  * the number of the 'n' packed waves whose capsule may meet one of the tile's rays, followed by
  * their indices; a tile's list starts at (n + 1) times its index, row by row. The rays of a
  * tile fill the cone between four planes through the eye: those of its first and last pixel
@@ -126,32 +142,32 @@ static int may_reach(const double plane[3], const double m[3], const double e[3]
  * the waves of its tile, most of which are near, instead of every wave for every packet.
  * Returns the number of ints written, or 0 when out of memory.
  */
-static size_t cull_waves(renderer_t *r, int n) {
-  size_t tw = WAVES_PACKET * r->waves_local[0], th = r->waves_local[1];
-  size_t nx = r->pitch / tw, ny = r->rows / th, stride = (size_t)n + 1;
+static size_t cull_waves(const renderer_t *r, waves_state_t *ws, int n) {
+  size_t tw = WAVES_PACKET * ws->waves_local[0], th = ws->waves_local[1];
+  size_t nx = r->frame.pitch / tw, ny = r->frame.rows / th, stride = (size_t)n + 1;
   size_t need = nx * ny * stride;
   /* After the lists: each wave's first and last tile column and row. */
   size_t total = need + 4 * (size_t)n;
-  if (total > r->host_lists_cap) {
-    int32_t *p = realloc(r->host_lists, total * sizeof(int32_t));
+  if (total > ws->host_lists_cap) {
+    int32_t *p = realloc(ws->host_lists, total * sizeof(int32_t));
     if (p == NULL)
       return 0;
-    r->host_lists = p, r->host_lists_cap = total;
+    ws->host_lists = p, ws->host_lists_cap = total;
   }
   /* The planes of the tiles' first and last columns, then of their first and last rows. */
   double(*planes)[2][3] = malloc((nx + ny) * sizeof *planes);
   if (planes == NULL)
     return 0;
-  const vfx_frame_t *f = &r->frame;
+  const vfx_frame_t *f = &r->frame.consts;
   for (size_t t = 0; t < nx + ny; t++) {
     int row = t >= nx;
     size_t k = row ? t - nx : t, size = row ? th : tw;
     edge_plane(f, k * size + 0.5, row, 1, planes[t][0]);
     edge_plane(f, (k + 1) * size - 0.5, row, 0, planes[t][1]);
   }
-  int32_t *range = r->host_lists + need;
+  int32_t *range = ws->host_lists + need;
   for (int i = 0; i < n; i++) {
-    const float *rec = r->host_waves + (size_t)i * WAVE_STRIDE;
+    const float *rec = ws->host_waves + (size_t)i * WAVE_STRIDE;
     double m[3], e[3];
     for (int k = 0; k < 3; k++) {
       m[k] = -(double)rec[WAVE_W + k];
@@ -173,7 +189,7 @@ static size_t cull_waves(renderer_t *r, int n) {
   free(planes);
   for (size_t ty = 0; ty < ny; ty++) {
     for (size_t tx = 0; tx < nx; tx++) {
-      int32_t *list = r->host_lists + (ty * nx + tx) * stride;
+      int32_t *list = ws->host_lists + (ty * nx + tx) * stride;
       int32_t count = 0, x = (int32_t)tx, y = (int32_t)ty;
       for (int i = 0; i < n; i++) {
         const int32_t *rg = range + 4 * (size_t)i;
@@ -188,65 +204,129 @@ static size_t cull_waves(renderer_t *r, int n) {
 
 /*
  * Runs the waves pass over the frame the objects pass set up: each ray is integrated from the
- * near distance to r->depth. 'mode' is WAVES_ADD (glow into r->linear) or WAVES_STORE_H (H into
- * r->hbuf); 'samples' > 0 swaps the closed form for a ray march of that many samples per wave.
- * Sets '*ran' to whether there was a wave to draw. Returns 0 or a PROTO_E_* code.
+ * near distance to r->frame.depth. 'mode' is WAVES_ADD (glow into r->frame.linear) or WAVES_STORE_H
+ * (H into ws->hbuf); 'samples' > 0 swaps the closed form for a ray march of that many samples per
+ * wave. Sets '*ran' to whether there was a wave to draw. Returns 0 or a PROTO_E_* code.
  */
-int render_pass_waves(renderer_t *r, const render_scene_t *scene, int mode, int samples, int *ran,
-                      char *err, size_t errlen) {
+static int waves_draw(renderer_t *r, waves_state_t *ws, const render_scene_t *scene, int mode,
+                      int samples, int *ran, char *err, size_t errlen) {
   *ran = 0;
-  int n = pack_waves(r, scene, r->frame.eye);
+  int n = pack_waves(ws, scene, r->frame.consts.eye);
   if (n < 0) {
     set_err(err, errlen, "[render] out of memory for %d waves", scene->nwaves);
     return PROTO_E_INTERNAL;
   }
-  size_t npix = r->pitch * r->rows;
+  size_t npix = r->frame.pitch * r->frame.rows;
   if (n == 0 && !(mode & (WAVES_STORE_H | WAVES_TONEMAP)))
     return 0;
-  if (render_ensure_buffer(r, &r->wave_recs, &r->cap_waves, (size_t)(n ? n : 1) * WAVE_STRIDE,
+  if (render_ensure_buffer(r, &ws->wave_recs, &ws->cap_waves, (size_t)(n ? n : 1) * WAVE_STRIDE,
                            sizeof(float), CL_MEM_READ_ONLY, 1, err, errlen))
     return PROTO_E_DEVICE;
-  if ((mode & WAVES_STORE_H) && render_ensure_buffer(r, &r->hbuf, &r->cap_h, npix, sizeof(float),
+  if ((mode & WAVES_STORE_H) && render_ensure_buffer(r, &ws->hbuf, &ws->cap_h, npix, sizeof(float),
                                                      CL_MEM_READ_WRITE, 0, err, errlen))
     return PROTO_E_DEVICE;
-  size_t nlists = cull_waves(r, n);
+  size_t nlists = cull_waves(r, ws, n);
   if (nlists == 0) {
     set_err(err, errlen, "[render] out of memory for the wave lists");
     return PROTO_E_INTERNAL;
   }
-  if (render_ensure_buffer(r, &r->wave_lists, &r->cap_lists, nlists, sizeof(int32_t),
+  if (render_ensure_buffer(r, &ws->wave_lists, &ws->cap_lists, nlists, sizeof(int32_t),
                            CL_MEM_READ_ONLY, 1, err, errlen))
     return PROTO_E_DEVICE;
   /* Kernels take a buffer argument even when only one mode uses it. */
-  cl_mem hout = r->hbuf ? r->hbuf : r->depth;
-  cl_kernel k = samples > 0 ? r->waves_march : r->waves;
+  cl_mem hout = ws->hbuf ? ws->hbuf : r->frame.depth;
+  cl_kernel k = samples > 0 ? ws->waves_march : ws->waves;
   cl_int nw = n, md = mode, ns = samples, op;
   cl_float scale;
   render_tone_args(scene, &scale, &op);
   cl_int cr = CL_SUCCESS;
   if (n > 0)
-    cr =
-        clEnqueueWriteBuffer(r->dev.queue, r->wave_recs, CL_FALSE, 0,
-                             (size_t)n * WAVE_STRIDE * sizeof(float), r->host_waves, 0, NULL, NULL);
+    cr = clEnqueueWriteBuffer(r->dev.queue, ws->wave_recs, CL_FALSE, 0,
+                              (size_t)n * WAVE_STRIDE * sizeof(float), ws->host_waves, 0, NULL,
+                              NULL);
   if (cr == CL_SUCCESS)
-    cr = clEnqueueWriteBuffer(r->dev.queue, r->wave_lists, CL_FALSE, 0, nlists * sizeof(int32_t),
-                              r->host_lists, 0, NULL, NULL);
-  cr = KERNEL_ARGS(cr, k, 0, {sizeof r->frame, &r->frame}, {sizeof(cl_mem), &r->wave_recs},
-                   {sizeof nw, &nw}, {sizeof(cl_mem), &r->wave_lists}, {sizeof(cl_mem), &r->depth},
-                   {sizeof(cl_mem), &r->linear}, {sizeof(cl_mem), &hout}, {sizeof md, &md},
-                   {sizeof(cl_mem), &r->rgba8}, {sizeof scale, &scale}, {sizeof op, &op});
+    cr = clEnqueueWriteBuffer(r->dev.queue, ws->wave_lists, CL_FALSE, 0, nlists * sizeof(int32_t),
+                              ws->host_lists, 0, NULL, NULL);
+  cr = KERNEL_ARGS(cr, k, 0, {sizeof r->frame.consts, &r->frame.consts},
+                   {sizeof(cl_mem), &ws->wave_recs}, {sizeof nw, &nw},
+                   {sizeof(cl_mem), &ws->wave_lists}, {sizeof(cl_mem), &r->frame.depth},
+                   {sizeof(cl_mem), &r->frame.linear}, {sizeof(cl_mem), &hout}, {sizeof md, &md},
+                   {sizeof(cl_mem), &r->frame.rgba8}, {sizeof scale, &scale}, {sizeof op, &op});
   if (cr == CL_SUCCESS && samples > 0)
     cr = clSetKernelArg(k, 11, sizeof ns, &ns);
-  size_t global[2] = {r->pitch / WAVES_PACKET, r->rows};
-  if (cr == CL_SUCCESS)
-    cr = clEnqueueNDRangeKernel(r->dev.queue, k, 2, NULL, global, r->waves_local, 0, NULL, NULL);
-  if (cr == CL_SUCCESS)
-    cr = clFinish(r->dev.queue);
-  if (cr != CL_SUCCESS) {
-    set_err(err, errlen, "[render] waves pass failed on %s: %s", r->dev.device_name,
-            cl_dev_strerror(cr));
+  size_t global[2] = {r->frame.pitch / WAVES_PACKET, r->frame.rows};
+  if (render_launch(r, cr, k, global, ws->waves_local, "waves", err, errlen) != 0)
     return PROTO_E_DEVICE;
-  }
   *ran = n > 0;
   return 0;
 }
+
+static void waves_free(renderer_t *r, void *state) {
+  (void)r;
+  waves_state_t *ws = state;
+  if (ws == NULL)
+    return;
+  render_release((cl_kernel[]){ws->waves, ws->waves_march}, 2,
+                 (cl_mem[]){ws->wave_recs, ws->wave_lists, ws->hbuf}, 3);
+  free(ws->host_waves);
+  free(ws->host_lists);
+  free(ws);
+}
+
+static int waves_init(renderer_t *r, void **state, char *err, size_t errlen) {
+  waves_state_t *ws = render_state_new(state, sizeof *ws, err, errlen);
+  if (ws == NULL)
+    return -1;
+  if ((ws->waves = cl_dev_kernel(&r->dev, "waves", err, errlen)) == NULL ||
+      (ws->waves_march = cl_dev_kernel(&r->dev, "waves_march", err, errlen)) == NULL)
+    return -1;
+  /* The waves kernels cover the objects pass's pixels with wider work-items, so they keep its
+   * work-group's pixels if the device takes them, or halve them. The march kernel only serves
+   * comparisons and is not warmed up. r->group is set: the objects pass is initialised first. */
+  ws->waves_local[0] = r->group[0] * PACKET / WAVES_PACKET;
+  if (ws->waves_local[0] == 0)
+    ws->waves_local[0] = 1;
+  ws->waves_local[1] = r->group[1];
+  render_fit_local(r, ws->waves, ws->waves_local, 2);
+  render_fit_local(r, ws->waves_march, ws->waves_local, 2);
+  render_frame_require(r, WAVES_PACKET * ws->waves_local[0], ws->waves_local[1]);
+  return 0;
+}
+
+/* The waves draw over every aov but depth. */
+static int waves_wants(const renderer_t *r, const render_scene_t *scene, const render_params_t *p) {
+  (void)r;
+  return (p->layers & LAYER_WAVES) && scene->nwaves > 0 && p->aov != AOV_DEPTH;
+}
+
+/* The energy waves' glow added to r->frame.linear, or added and tone-mapped into
+ * r->frame.rgba8 when the plan fuses the tone map here (which then runs even without a wave to
+ * draw), or their H stored for the wave_h aov. */
+static int waves_run(renderer_t *r, void *state, const render_scene_t *scene,
+                     const render_params_t *p, const char **ran, char *err, size_t errlen) {
+  waves_state_t *ws = state;
+  int fused = r->frame.fuse_tonemap;
+  int mode = p->aov == AOV_WAVE_H ? WAVES_STORE_H : fused ? WAVES_TONEMAP : WAVES_ADD;
+  if (r->frame.base_skipped)
+    mode |= WAVES_EMPTY;
+  int drew;
+  int rc = waves_draw(r, ws, scene, mode, p->march_samples, &drew, err, errlen);
+  if (rc != 0)
+    return rc;
+  if (mode & WAVES_STORE_H)
+    r->frame.out = ws->hbuf, r->frame.out_pitch = r->frame.pitch;
+  if (fused)
+    r->frame.out = r->frame.rgba8, r->frame.out_pitch = r->frame.pitch;
+  /* Without a wave to draw, the fused kernel was only the tone map. */
+  *ran = drew ? "waves" : fused ? "tonemap" : NULL;
+  return 0;
+}
+
+const render_pass_t render_pass_waves = {.name = "waves",
+                                         .layers = LAYER_WAVES,
+                                         .aovs = 1u << AOV_WAVE_H,
+                                         .flags = PASS_TONEMAPS,
+                                         .init = waves_init,
+                                         .free = waves_free,
+                                         .wants = waves_wants,
+                                         .run = waves_run};

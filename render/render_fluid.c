@@ -8,6 +8,8 @@
 
 #include "render_internal.h"
 
+#define FLUID_MAX_CELLS (1 << 21) /* The fluid grid's cells grow beyond h to stay under this. */
+
 /* ---- Fluid --------------------------------------------------------------------------------- */
 
 #define FLUID_THREAD_MIN 8192 /* Particles in a half below which the build stays on one thread. */
@@ -113,8 +115,20 @@ static void fluid_scan_both(fluid_scan_t w[2]) {
     fluid_scan(&w[1]);
 }
 
+/* The fluid pass's kernel, device grid and host staging. */
+typedef struct fluid_state {
+  cl_kernel kernel;
+  size_t fluid_local[2];
+  cl_mem fluid_cells, fluid_pos; /* The fluid grid: cap_fcells ints and cap_fpos floats. */
+  size_t cap_fcells, cap_fpos;
+  int32_t *host_fcells; /* Staging for the fluid grid's (start, count) pairs. */
+  size_t host_fcells_cap;
+  float *host_fpos; /* Staging for the fluid grid's lists. */
+  size_t host_fpos_cap;
+} fluid_state_t;
+
 /*
- * Builds the fluid grid of vfx_fluid_t (common.h) in r->host_fcells and r->host_fpos by a
+ * Builds the fluid grid of vfx_fluid_t (common.h) in fs->host_fcells and fs->host_fpos by a
  * counting sort in two passes over the particles, each visiting only the cells its ball
  * reaches, and fills 'fl'. A cell lists the particles closer than h to its box: one exactly h
  * away adds nothing to the field inside the cell but would still count in the kernel's bounds
@@ -125,7 +139,7 @@ static void fluid_scan_both(fluid_scan_t w[2]) {
  * Particles with a non-finite coordinate are left out. Returns the number of cells (0 when no
  * particle is left), or -1 when out of memory.
  */
-static long fluid_build(renderer_t *r, const rfluid_t *fd, vfx_fluid_t *fl) {
+static long fluid_build(fluid_state_t *fs, const rfluid_t *fd, vfx_fluid_t *fl) {
   float h = fd->h, lo[3] = {INFINITY, INFINITY, INFINITY},
         hi[3] = {-INFINITY, -INFINITY, -INFINITY};
   uint32_t used = 0;
@@ -163,9 +177,9 @@ static long fluid_build(renderer_t *r, const rfluid_t *fd, vfx_fluid_t *fl) {
   /* Cell pairs (start, count) for the device, and two arrays of counts, then cursors, one
    * per half of the particles: the second half's entries of a list follow the first's, so
    * the lists come out in particle order however the halves are run. */
-  if (grow_staging((void **)&r->host_fcells, &r->host_fcells_cap, 4 * ncell, sizeof(int32_t)))
+  if (grow_staging((void **)&fs->host_fcells, &fs->host_fcells_cap, 4 * ncell, sizeof(int32_t)))
     return -1;
-  int32_t *cells = r->host_fcells, *cur0 = cells + 2 * ncell, *cur1 = cur0 + ncell;
+  int32_t *cells = fs->host_fcells, *cur0 = cells + 2 * ncell, *cur1 = cur0 + ncell;
   memset(cur0, 0, 2 * ncell * sizeof(int32_t));
   uint32_t half = fd->count / 2;
   fluid_scan_t w[2] = {{fl, fd, 0, half, cur0, NULL}, {fl, fd, half, fd->count, cur1, NULL}};
@@ -182,31 +196,33 @@ static long fluid_build(renderer_t *r, const rfluid_t *fd, vfx_fluid_t *fl) {
   }
   /* > 0: every particle lists in its own cell. */
   if (at > INT32_MAX / 3 ||
-      grow_staging((void **)&r->host_fpos, &r->host_fpos_cap, 3 * at, sizeof(float)))
+      grow_staging((void **)&fs->host_fpos, &fs->host_fpos_cap, 3 * at, sizeof(float)))
     return -1;
   fl->entries = (int)at;
   for (int k = 0; k < 2; k++)
-    w[k].out = r->host_fpos;
+    w[k].out = fs->host_fpos;
   fluid_scan_both(w);
   return (long)ncell;
 }
 
 /*
  * Runs the fluid pass over the frame the objects pass set up: builds the grid of the scene's
- * particles, uploads it and draws the metaballs into r->linear and r->depth where they are
- * nearer than the objects. Sets '*ran' to whether there was a particle to draw. Returns 0 or a
+ * particles, uploads it and draws the metaballs into r->frame.linear and r->frame.depth where they
+ * are nearer than the objects. Sets '*ran' to whether there was a particle to draw. Returns 0 or a
  * PROTO_E_* code.
  */
-int render_pass_fluid(renderer_t *r, const render_scene_t *scene, int *ran, char *err,
-                      size_t errlen) {
+static int fluid_run(renderer_t *r, void *state, const render_scene_t *scene,
+                     const render_params_t *p, const char **ran, char *err, size_t errlen) {
+  (void)p;
+  fluid_state_t *fs = state;
   const rfluid_t *fd = &scene->fluid;
-  *ran = 0;
+  *ran = NULL;
   if (fd->count == 0 || fd->positions == NULL || !(fd->h > 0) || !isfinite(fd->h) ||
       !(fd->threshold > 0) || !isfinite(fd->threshold))
     return 0;
   vfx_fluid_t fl;
   memset(&fl, 0, sizeof fl);
-  long ncell = fluid_build(r, fd, &fl);
+  long ncell = fluid_build(fs, fd, &fl);
   if (ncell < 0) {
     set_err(err, errlen, "[render] out of memory for the grid of %u particles", fd->count);
     return PROTO_E_INTERNAL;
@@ -218,7 +234,7 @@ int render_pass_fluid(renderer_t *r, const render_scene_t *scene, int *ran, char
   fl.threshold = fd->threshold;
   fl.min_step = fd->h / 2000;
   fl.tol = fd->h * 1e-3f;
-  fl.rows = (int)r->rows;
+  fl.rows = (int)r->frame.rows;
   double ior = isfinite(fd->ior) && fd->ior > 0 ? fd->ior : 1.33;
   double f0 = (ior - 1) / (ior + 1);
   fl.f0 = (float)(f0 * f0);
@@ -227,34 +243,64 @@ int render_pass_fluid(renderer_t *r, const render_scene_t *scene, int *ran, char
   fl.shininess = (float)(2 / (rough * rough) - 2 + 1);
   memcpy(fl.color, fd->color, sizeof fl.color);
 
-  if (render_ensure_buffer(r, &r->fluid_cells, &r->cap_fcells, 2 * (size_t)ncell, sizeof(int32_t),
+  if (render_ensure_buffer(r, &fs->fluid_cells, &fs->cap_fcells, 2 * (size_t)ncell, sizeof(int32_t),
                            CL_MEM_READ_ONLY, 1, err, errlen) ||
-      render_ensure_buffer(r, &r->fluid_pos, &r->cap_fpos, 3 * (size_t)fl.entries, sizeof(float),
+      render_ensure_buffer(r, &fs->fluid_pos, &fs->cap_fpos, 3 * (size_t)fl.entries, sizeof(float),
                            CL_MEM_READ_ONLY, 1, err, errlen))
     return PROTO_E_DEVICE;
-  cl_kernel k = r->fluid;
+  cl_kernel k = fs->kernel;
   cl_int cr =
-      clEnqueueWriteBuffer(r->dev.queue, r->fluid_cells, CL_FALSE, 0,
-                           2 * (size_t)ncell * sizeof(int32_t), r->host_fcells, 0, NULL, NULL);
+      clEnqueueWriteBuffer(r->dev.queue, fs->fluid_cells, CL_FALSE, 0,
+                           2 * (size_t)ncell * sizeof(int32_t), fs->host_fcells, 0, NULL, NULL);
   if (cr == CL_SUCCESS)
-    cr = clEnqueueWriteBuffer(r->dev.queue, r->fluid_pos, CL_FALSE, 0,
-                              3 * (size_t)fl.entries * sizeof(float), r->host_fpos, 0, NULL, NULL);
-  cr = KERNEL_ARGS(cr, k, 0, {sizeof r->frame, &r->frame}, {sizeof fl, &fl},
-                   {sizeof(cl_mem), &r->fluid_cells}, {sizeof(cl_mem), &r->fluid_pos},
-                   {sizeof(cl_mem), &r->linear}, {sizeof(cl_mem), &r->depth});
+    cr = clEnqueueWriteBuffer(r->dev.queue, fs->fluid_pos, CL_FALSE, 0,
+                              3 * (size_t)fl.entries * sizeof(float), fs->host_fpos, 0, NULL, NULL);
+  cr = KERNEL_ARGS(cr, k, 0, {sizeof r->frame.consts, &r->frame.consts}, {sizeof fl, &fl},
+                   {sizeof(cl_mem), &fs->fluid_cells}, {sizeof(cl_mem), &fs->fluid_pos},
+                   {sizeof(cl_mem), &r->frame.linear}, {sizeof(cl_mem), &r->frame.depth});
   /* A work-item per packet of FLUID_PW x FLUID_PH pixels; packets past the buffers' rows and
    * pitch are not traced. */
-  size_t global[2] = {round_up(round_up(r->pitch, FLUID_PW) / FLUID_PW, r->fluid_local[0]),
-                      round_up(round_up(r->rows, FLUID_PH) / FLUID_PH, r->fluid_local[1])};
-  if (cr == CL_SUCCESS)
-    cr = clEnqueueNDRangeKernel(r->dev.queue, k, 2, NULL, global, r->fluid_local, 0, NULL, NULL);
-  if (cr == CL_SUCCESS)
-    cr = clFinish(r->dev.queue);
-  if (cr != CL_SUCCESS) {
-    set_err(err, errlen, "[render] fluid pass failed on %s: %s", r->dev.device_name,
-            cl_dev_strerror(cr));
+  size_t global[2] = {round_up(round_up(r->frame.pitch, FLUID_PW) / FLUID_PW, fs->fluid_local[0]),
+                      round_up(round_up(r->frame.rows, FLUID_PH) / FLUID_PH, fs->fluid_local[1])};
+  if (render_launch(r, cr, k, global, fs->fluid_local, "fluid", err, errlen) != 0)
     return PROTO_E_DEVICE;
-  }
-  *ran = 1;
+  *ran = "fluid";
   return 0;
 }
+
+static void fluid_free(renderer_t *r, void *state) {
+  (void)r;
+  fluid_state_t *fs = state;
+  if (fs == NULL)
+    return;
+  render_release(&fs->kernel, 1, (cl_mem[]){fs->fluid_cells, fs->fluid_pos}, 2);
+  free(fs->host_fcells);
+  free(fs->host_fpos);
+  free(fs);
+}
+
+static int fluid_init(renderer_t *r, void **state, char *err, size_t errlen) {
+  fluid_state_t *fs = render_state_new(state, sizeof *fs, err, errlen);
+  if (fs == NULL)
+    return -1;
+  if ((fs->kernel = cl_dev_kernel(&r->dev, "fluid", err, errlen)) == NULL)
+    return -1;
+  /* A packet of FLUID_PW x FLUID_PH pixels per fluid work-item; the launch rounds the packets up
+   * to whole work-groups and the kernel skips those past the buffers. */
+  fs->fluid_local[0] = FLUID_LX;
+  fs->fluid_local[1] = FLUID_LY;
+  render_fit_local(r, fs->kernel, fs->fluid_local, 2);
+  return 0;
+}
+
+static int fluid_wants(const renderer_t *r, const render_scene_t *scene, const render_params_t *p) {
+  (void)r;
+  return (p->layers & LAYER_FLUID) && scene->fluid.count > 0;
+}
+
+const render_pass_t render_pass_fluid = {.name = "fluid",
+                                         .layers = LAYER_FLUID,
+                                         .init = fluid_init,
+                                         .free = fluid_free,
+                                         .wants = fluid_wants,
+                                         .run = fluid_run};

@@ -1,10 +1,11 @@
 /*
- * Frame encoders. The fast default PNG (zlib level 1, no row filter) encodes 512x512 in about
- * 3 ms, where libpng's defaults take 23-44 ms for files perhaps half the size (PERF-NOTES); a
- * request that wants small files asks for a level, and goes through libpng. The default is
- * written here: its rows are cut into a part per core, each part deflated on its own as raw
- * deflate blocks ending on a byte boundary (a sync flush, the last part a final block), so that
- * the parts, one after another, are one valid zlib stream; its Adler-32 is the parts' combined.
+ * The PNG encoder of the "png" format (render_format.c). The fast default PNG (zlib level 1, no row
+ * filter) encodes 512x512 in about 3 ms, where libpng's defaults take 23-44 ms for files perhaps
+ * half the size (PERF-NOTES); a request that wants small files asks for a level, and goes through
+ * libpng. The default is written here: its rows are cut into a part per core, each part deflated on
+ * its own as raw deflate blocks ending on a byte boundary (a sync flush, the last part a final
+ * block), so that the parts, one after another, are one valid zlib stream; its Adler-32 is the
+ * parts' combined.
  */
 #include <png.h>
 #include <setjmp.h>
@@ -215,4 +216,11 @@ int encode_png(const uint8_t *rgba, uint32_t width, uint32_t height, int level, 
   *nout = sink->len;
   free(sink);
   return 0;
+}
+
+/* A PNG is at worst a little over the raw pixels: stored deflate blocks, a filter byte a row,
+ * the chunks. */
+size_t encode_png_bound(uint32_t width, uint32_t height) {
+  size_t npix = (size_t)width * height;
+  return 4 * npix + npix / 64 + height;
 }

@@ -7,7 +7,9 @@
 #include <math.h>
 
 #include "render_internal.h"
-#include "../kernels/volume.h"
+
+#define BVH_LEAF 4  /* Triangles per leaf the builder aims for. */
+#define BVH_BINS 16 /* Bins of the SAH split search. */
 
 /* ---- Transforms ---------------------------------------------------------------------------- */
 
@@ -280,51 +282,15 @@ static int bvh_matches(const renderer_t *r, const render_scene_t *scene) {
     const robject_t *o = &scene->objects[i];
     if (o->shape != SHAPE_MESH || o->mesh == NULL)
       continue;
-    if (k >= r->bvh_nkeys)
+    if (k >= r->frame.bvh_nkeys)
       return 0;
-    const mesh_key_t *key = &r->bvh_keys[k++];
+    const mesh_key_t *key = &r->frame.bvh_keys[k++];
     if (key->mesh != o->mesh || memcmp(key->position, o->position, sizeof key->position) ||
         memcmp(key->scale, o->scale, sizeof key->scale) ||
         memcmp(key->rotation, o->rotation, sizeof key->rotation))
       return 0;
   }
-  return k == r->bvh_nkeys;
-}
-
-void render_bvh_forget(renderer_t *r) {
-  for (int i = 0; i < r->bvh_nkeys; i++)
-    mesh_unref((mesh_t *)r->bvh_keys[i].mesh);
-  free(r->bvh_keys);
-  r->bvh_keys = NULL;
-  r->bvh_nkeys = 0;
-  r->bvh_ntri = 0;
-}
-
-/*
- * (Re)creates 'buf' with room for at least 'need' elements of 'size' bytes; with 'headroom' it
- * asks for half as much again, so that a slowly growing scene does not reallocate every frame.
- */
-int render_ensure_buffer(renderer_t *r, cl_mem *buf, size_t *cap, size_t need, size_t size,
-                         cl_mem_flags flags, int headroom, char *err, size_t errlen) {
-  if (*buf != NULL && *cap >= need)
-    return 0;
-  size_t want = headroom ? need + need / 2 : need;
-  if (*buf)
-    clReleaseMemObject(*buf);
-  cl_int rc;
-  *buf = clCreateBuffer(r->dev.context, flags, want * size, NULL, &rc);
-  if (*buf == NULL) {
-    *buf = clCreateBuffer(r->dev.context, flags, need * size, NULL, &rc);
-    want = need;
-  }
-  if (*buf == NULL) {
-    *cap = 0;
-    set_err(err, errlen, "[render] cannot allocate %zu bytes on %s: %s", need * size,
-            r->dev.device_name, cl_dev_strerror(rc));
-    return -1;
-  }
-  *cap = want;
-  return 0;
+  return k == r->frame.bvh_nkeys;
 }
 
 /*
@@ -334,7 +300,7 @@ int render_ensure_buffer(renderer_t *r, cl_mem *buf, size_t *cap, size_t need, s
 static int bvh_update(renderer_t *r, const render_scene_t *scene, char *err, size_t errlen) {
   if (bvh_matches(r, scene))
     return 0;
-  render_bvh_forget(r);
+  render_geometry_forget(&r->frame);
 
   size_t ntri = 0;
   int nmesh = 0;
@@ -350,7 +316,7 @@ static int bvh_update(renderer_t *r, const render_scene_t *scene, char *err, siz
     set_err(err, errlen, "[render] scene has too many mesh triangles (%zu)", ntri);
     return PROTO_E_LIMIT;
   }
-  r->bvh_keys = calloc(nmesh ? (size_t)nmesh : 1, sizeof *r->bvh_keys);
+  r->frame.bvh_keys = calloc(nmesh ? (size_t)nmesh : 1, sizeof *r->frame.bvh_keys);
   size_t alloc = ntri ? ntri : 1;
   float *world = malloc(alloc * 9 * sizeof(float));
   float *box = malloc(alloc * 6 * sizeof(float));
@@ -360,7 +326,7 @@ static int bvh_update(renderer_t *r, const render_scene_t *scene, char *err, siz
   float *packed = NULL, root[12];
   box_empty(root), box_empty(root + 6);
   int rc = PROTO_E_INTERNAL;
-  if (!r->bvh_keys || !world || !box || !cent || !owner || !b.idx) {
+  if (!r->frame.bvh_keys || !world || !box || !cent || !owner || !b.idx) {
     set_err(err, errlen, "[render] out of memory building the mesh BVH (%zu triangles)", ntri);
     goto done;
   }
@@ -372,12 +338,12 @@ static int bvh_update(renderer_t *r, const render_scene_t *scene, char *err, siz
     const robject_t *o = &scene->objects[i];
     if (o->shape != SHAPE_MESH || o->mesh == NULL)
       continue;
-    mesh_key_t *key = &r->bvh_keys[k];
+    mesh_key_t *key = &r->frame.bvh_keys[k];
     key->mesh = mesh_ref(o->mesh);
     memcpy(key->position, o->position, sizeof key->position);
     memcpy(key->scale, o->scale, sizeof key->scale);
     memcpy(key->rotation, o->rotation, sizeof key->rotation);
-    r->bvh_nkeys = ++k;
+    r->frame.bvh_nkeys = ++k;
     if (!usable_scale(o->scale))
       continue;
     double m[3][3];
@@ -426,28 +392,28 @@ static int bvh_update(renderer_t *r, const render_scene_t *scene, char *err, siz
       set_int(dst + TRI_COLOR, owner[b.idx[i]]);
     }
     rc = PROTO_E_DEVICE;
-    if (render_ensure_buffer(r, &r->nodes, &r->cap_nodes, b.nnodes, NODE_STRIDE * sizeof(float),
-                             CL_MEM_READ_ONLY, 1, err, errlen) ||
-        render_ensure_buffer(r, &r->tris, &r->cap_tris, ntri, TRI_STRIDE * sizeof(float),
-                             CL_MEM_READ_ONLY, 1, err, errlen))
+    if (render_ensure_buffer(r, &r->frame.nodes, &r->frame.cap_nodes, b.nnodes,
+                             NODE_STRIDE * sizeof(float), CL_MEM_READ_ONLY, 1, err, errlen) ||
+        render_ensure_buffer(r, &r->frame.tris, &r->frame.cap_tris, ntri,
+                             TRI_STRIDE * sizeof(float), CL_MEM_READ_ONLY, 1, err, errlen))
       goto done;
     cl_int cr =
-        clEnqueueWriteBuffer(r->dev.queue, r->nodes, CL_TRUE, 0,
+        clEnqueueWriteBuffer(r->dev.queue, r->frame.nodes, CL_TRUE, 0,
                              b.nnodes * NODE_STRIDE * sizeof(float), b.nodes, 0, NULL, NULL);
     if (cr == CL_SUCCESS)
-      cr = clEnqueueWriteBuffer(r->dev.queue, r->tris, CL_TRUE, 0,
+      cr = clEnqueueWriteBuffer(r->dev.queue, r->frame.tris, CL_TRUE, 0,
                                 ntri * TRI_STRIDE * sizeof(float), packed, 0, NULL, NULL);
     if (cr != CL_SUCCESS) {
       set_err(err, errlen, "[render] uploading the mesh BVH failed: %s", cl_dev_strerror(cr));
       goto done;
     }
   }
-  r->bvh_ntri = (int)ntri;
+  r->frame.bvh_ntri = (int)ntri;
   rc = 0;
 
 done:
   if (rc != 0)
-    render_bvh_forget(r);
+    render_geometry_forget(&r->frame);
   free(world);
   free(box);
   free(cent);
@@ -512,7 +478,7 @@ static int setup_camera(vfx_frame_t *f, const rcamera_t *c, uint32_t w, uint32_t
 }
 
 /*
- * Packs the scene's objects into r->host_objs and the counts and offsets of 'f'; with 'draw'
+ * Packs the scene's objects into r->frame.host_objs and the counts and offsets of 'f'; with 'draw'
  * false the frame has no objects. Objects with a zero or non-finite scale are left out. The
  * number of floats packed goes to '*nfloats'.
  */
@@ -531,13 +497,13 @@ static int pack_objects(renderer_t *r, const render_scene_t *scene, int draw, vf
       nmesh++;
   }
   size_t need = (size_t)nsph * SPH_STRIDE + (size_t)nconv * CONV_STRIDE + (size_t)nmesh * 3 + 1;
-  if (need > r->host_objs_cap) {
-    float *p = realloc(r->host_objs, need * sizeof(float));
+  if (need > r->frame.host_objs_cap) {
+    float *p = realloc(r->frame.host_objs, need * sizeof(float));
     if (p == NULL) {
       set_err(err, errlen, "[render] out of memory for %d objects", scene->nobjects);
       return PROTO_E_INTERNAL;
     }
-    r->host_objs = p, r->host_objs_cap = need;
+    r->frame.host_objs = p, r->frame.host_objs_cap = need;
   }
   f->nsph = nsph;
   f->nconv = nconv;
@@ -547,47 +513,73 @@ static int pack_objects(renderer_t *r, const render_scene_t *scene, int draw, vf
   for (int i = 0; draw && i < scene->nobjects; i++) {
     const robject_t *o = &scene->objects[i];
     if (o->shape == SHAPE_SPHERE && usable_scale(o->scale)) {
-      pack_sphere(o, r->host_objs + (size_t)s++ * SPH_STRIDE);
+      pack_sphere(o, r->frame.host_objs + (size_t)s++ * SPH_STRIDE);
     } else if (((o->shape == SHAPE_BOX || o->shape == SHAPE_TETRAHEDRON) &&
                 usable_scale(o->scale)) ||
                o->shape == SHAPE_PLANE) {
-      pack_convex(o, r->host_objs + f->conv_off + (size_t)c++ * CONV_STRIDE);
+      pack_convex(o, r->frame.host_objs + f->conv_off + (size_t)c++ * CONV_STRIDE);
     } else if (o->shape == SHAPE_MESH && o->mesh != NULL) {
-      memcpy(r->host_objs + f->mesh_off + 3 * m++, o->color, 3 * sizeof(float));
+      memcpy(r->frame.host_objs + f->mesh_off + 3 * m++, o->color, 3 * sizeof(float));
     }
   }
-  r->host_objs[need - 1] = 0;
+  r->frame.host_objs[need - 1] = 0;
   *nfloats = need;
   return 0;
 }
 
-/* The pixels of a row that the padded buffers' pitch is a multiple of: the widest work-group of
- * the passes. The widths are powers of two, so each of them divides it. */
-size_t render_row_pixels(const renderer_t *r) {
-  size_t n = PACKET * r->objects_local[0];
-  if (n < WAVES_PACKET * r->waves_local[0])
-    n = WAVES_PACKET * r->waves_local[0];
-  if (n < TONEMAP_PACKET * r->tonemap_local[0])
-    n = TONEMAP_PACKET * r->tonemap_local[0];
-  return n;
+/* The objects pass's state: its kernel and work-group; what it draws goes to r->frame. */
+typedef struct objects_state {
+  cl_kernel kernel;
+  size_t local[2];
+} objects_state_t;
+
+static void objects_free(renderer_t *r, void *state) {
+  objects_state_t *os = state;
+  render_geometry_forget(&r->frame);
+  if (os)
+    render_release(&os->kernel, 1, NULL, 0);
+  free(os);
 }
 
-/* Runs the objects pass into r->linear and r->depth and keeps the frame's constants in
+static int objects_init(renderer_t *r, void **state, char *err, size_t errlen) {
+  objects_state_t *os = render_state_new(state, sizeof *os, err, errlen);
+  if (os == NULL)
+    return -1;
+  if ((os->kernel = cl_dev_kernel(&r->dev, "objects", err, errlen)) == NULL)
+    return -1;
+  os->local[0] = OBJECTS_LX;
+  os->local[1] = OBJECTS_LY;
+  render_fit_local(r, os->kernel, os->local, 2);
+  r->group[0] = os->local[0];
+  r->group[1] = os->local[1];
+  render_frame_require(r, PACKET * os->local[0], os->local[1] ? os->local[1] : 1);
+  return 0;
+}
 
- * r->frame for the passes after it. Returns 0 or a PROTO_E_* code. */
-int render_pass_objects(renderer_t *r, const render_scene_t *scene, const render_params_t *p,
-                        char *err, size_t errlen) {
+static void objects_reset(renderer_t *r, void *state) {
+  (void)state;
+  render_geometry_forget(&r->frame);
+}
+
+/* Every frame starts here: it sets up the camera and the buffers even when the objects layer is
+ * off. */
+static int objects_wants(const renderer_t *r, const render_scene_t *scene,
+                         const render_params_t *p) {
+  (void)r, (void)scene, (void)p;
+  return 1;
+}
+
+/* Ray casts the objects into r->frame.linear and r->frame.depth and keeps the frame's constants
+ * in r->frame.consts for the passes after it. With r->frame.base_optional set and no object to
+ * draw, it launches nothing and sets r->frame.base_skipped. Returns 0 or a PROTO_E_* code. */
+static int objects_run(renderer_t *r, void *state, const render_scene_t *scene,
+                       const render_params_t *p, const char **ran, char *err, size_t errlen) {
+  objects_state_t *os = state;
   vfx_frame_t f;
   memset(&f, 0, sizeof f);
-  r->pitch = round_up(p->width, render_row_pixels(r));
-  /* Whole work-groups of every pass, and whole volume packets (VOL_PACKET_H rows). */
-  size_t rows_unit = r->objects_local[1] ? r->objects_local[1] : 1;
-  while (rows_unit % VOL_PACKET_H)
-    rows_unit *= 2;
-  r->rows = round_up(p->height, rows_unit);
   f.width = (int)p->width;
   f.height = (int)p->height;
-  f.pitch = (int)r->pitch;
+  f.pitch = (int)r->frame.pitch;
   int rc =
       setup_camera(&f, p->camera ? p->camera : &scene->camera, p->width, p->height, err, errlen);
   if (rc != 0)
@@ -598,7 +590,7 @@ int render_pass_objects(renderer_t *r, const render_scene_t *scene, const render
     return rc;
   if (draw && (rc = bvh_update(r, scene, err, errlen)) != 0)
     return rc;
-  f.ntri = draw ? r->bvh_ntri : 0;
+  f.ntri = draw ? r->frame.bvh_ntri : 0;
 
   double l[3] = {scene->light.direction[0], scene->light.direction[1], scene->light.direction[2]};
   double len = sqrt(l[0] * l[0] + l[1] * l[1] + l[2] * l[2]);
@@ -610,52 +602,38 @@ int render_pass_objects(renderer_t *r, const render_scene_t *scene, const render
   f.ambient = scene->light.ambient;
   f.bg[3] = scene->transparent_background ? 0.0f : 1.0f;
 
-  size_t npix = r->pitch * r->rows;
-  if (render_ensure_buffer(r, &r->objs, &r->cap_objs, nobj, sizeof(float), CL_MEM_READ_ONLY, 1, err,
-                           errlen) ||
-      render_ensure_buffer(r, &r->nodes, &r->cap_nodes, 1, NODE_STRIDE * sizeof(float),
+  if (render_ensure_buffer(r, &r->frame.objs, &r->frame.cap_objs, nobj, sizeof(float),
                            CL_MEM_READ_ONLY, 1, err, errlen) ||
-      render_ensure_buffer(r, &r->tris, &r->cap_tris, 1, TRI_STRIDE * sizeof(float),
+      render_ensure_buffer(r, &r->frame.nodes, &r->frame.cap_nodes, 1, NODE_STRIDE * sizeof(float),
+                           CL_MEM_READ_ONLY, 1, err, errlen) ||
+      render_ensure_buffer(r, &r->frame.tris, &r->frame.cap_tris, 1, TRI_STRIDE * sizeof(float),
                            CL_MEM_READ_ONLY, 1, err, errlen))
     return PROTO_E_DEVICE;
-  if (npix > r->cap_pixels) {
-    /* The per-pixel buffers grow together, to exactly the new size: frames can be large. */
-    cl_mem *bufs[3] = {&r->linear, &r->depth, &r->rgba8};
-    size_t sizes[3] = {4 * sizeof(float), sizeof(float), 4};
-    for (int i = 0; i < 3; i++) {
-      size_t cap = 0;
-      if (*bufs[i])
-        clReleaseMemObject(*bufs[i]), *bufs[i] = NULL;
-      if (render_ensure_buffer(r, bufs[i], &cap, npix, sizes[i], CL_MEM_READ_WRITE, 0, err,
-                               errlen)) {
-        r->cap_pixels = 0;
-        return PROTO_E_DEVICE;
-      }
-    }
-    r->cap_pixels = npix;
-  }
 
-  r->frame = f;
+  r->frame.consts = f;
   /* With nothing to draw, the image is the background at infinite depth: a pass after this one
-   * that knows it (r->objects_optional) saves the launch and the writing and reading of it. */
-  r->objects_skipped = r->objects_optional && f.nsph == 0 && f.nconv == 0 && f.ntri == 0;
-  if (r->objects_skipped)
+   * that knows it (r->frame.base_optional) saves the launch and the writing and reading of it. */
+  r->frame.base_skipped = r->frame.base_optional && f.nsph == 0 && f.nconv == 0 && f.ntri == 0;
+  if (r->frame.base_skipped)
     return 0;
-  cl_int cr = clEnqueueWriteBuffer(r->dev.queue, r->objs, CL_FALSE, 0, nobj * sizeof(float),
-                                   r->host_objs, 0, NULL, NULL);
-  cl_kernel k = r->objects;
-  cr = KERNEL_ARGS(cr, k, 0, {sizeof f, &f}, {sizeof(cl_mem), &r->objs},
-                   {sizeof(cl_mem), &r->nodes}, {sizeof(cl_mem), &r->tris},
-                   {sizeof(cl_mem), &r->linear}, {sizeof(cl_mem), &r->depth});
-  size_t global[2] = {r->pitch / PACKET, r->rows};
-  if (cr == CL_SUCCESS)
-    cr = clEnqueueNDRangeKernel(r->dev.queue, k, 2, NULL, global, r->objects_local, 0, NULL, NULL);
-  if (cr == CL_SUCCESS)
-    cr = clFinish(r->dev.queue);
-  if (cr != CL_SUCCESS) {
-    set_err(err, errlen, "[render] objects pass failed on %s: %s", r->dev.device_name,
-            cl_dev_strerror(cr));
+  cl_int cr = clEnqueueWriteBuffer(r->dev.queue, r->frame.objs, CL_FALSE, 0, nobj * sizeof(float),
+                                   r->frame.host_objs, 0, NULL, NULL);
+  cl_kernel k = os->kernel;
+  cr = KERNEL_ARGS(cr, k, 0, {sizeof f, &f}, {sizeof(cl_mem), &r->frame.objs},
+                   {sizeof(cl_mem), &r->frame.nodes}, {sizeof(cl_mem), &r->frame.tris},
+                   {sizeof(cl_mem), &r->frame.linear}, {sizeof(cl_mem), &r->frame.depth});
+  size_t global[2] = {r->frame.pitch / PACKET, r->frame.rows};
+  if (render_launch(r, cr, k, global, os->local, "objects", err, errlen) != 0)
     return PROTO_E_DEVICE;
-  }
+  (void)ran;
   return 0;
 }
+
+const render_pass_t render_pass_objects = {.name = "objects",
+                                           .layers = LAYER_OBJECTS,
+                                           .aovs = 1u << AOV_DEPTH,
+                                           .init = objects_init,
+                                           .free = objects_free,
+                                           .wants = objects_wants,
+                                           .run = objects_run,
+                                           .reset = objects_reset};

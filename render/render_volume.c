@@ -77,24 +77,6 @@ struct vol_state {
   int smap_pitch;
 };
 
-/*
- * A counted reference to a grid, and its release: density_grid_ref and density_grid_unref
- * belong to the scene library, which links against this one, so the renderer does the same two
- * atomic steps itself (a grid is freed by whoever drops its last reference).
- */
-static density_grid_t *grid_hold(density_grid_t *g) {
-  if (g)
-    atomic_fetch_add_explicit(&g->refs, 1, memory_order_relaxed);
-  return g;
-}
-
-static void grid_drop(density_grid_t *g) {
-  if (!g || atomic_fetch_sub_explicit(&g->refs, 1, memory_order_acq_rel) != 1)
-    return;
-  free(g->data);
-  free(g);
-}
-
 /* ---- Noise --------------------------------------------------------------------------------- */
 
 static uint32_t hash3(int32_t x, int32_t y, int32_t z, uint32_t seed) {
@@ -650,7 +632,7 @@ static void pack(vol_entry_t *e, const float *dens, const float *lg, float *dst)
 }
 
 static void entry_clear(vol_entry_t *e) {
-  grid_drop(e->grid);
+  density_grid_unref(e->grid);
   free(e->baked);
   free(e->scratch);
   memset(e, 0, sizeof *e);
@@ -687,7 +669,7 @@ static int entry_build(vol_entry_t *e, const rvolume_t *v, float sigma, const fl
   memcpy(e->light, l, sizeof e->light);
   const float *dens;
   if (v->source == VOLUME_GRID) {
-    e->grid = grid_hold(v->grid);
+    e->grid = density_grid_ref(v->grid);
     memcpy(e->dims, v->grid->dims, sizeof e->dims);
     dens = v->grid->data;
   } else {
@@ -780,28 +762,29 @@ static void fit_shadow(vfx_shadow_t *sh, const vol_entry_t *const *ents, int n, 
  * new key. Returns 1 on a match, 0 on a miss, -1 when out of memory. */
 static int shadow_cached(renderer_t *r, struct vol_state *vs, const vfx_shadow_t *sh) {
   shadow_key_t *k = &vs->skey;
-  const vfx_frame_t *f = &r->frame;
+  const vfx_frame_t *f = &r->frame.consts;
   size_t nobjs = (size_t)f->nsph * SPH_STRIDE + (size_t)f->nconv * CONV_STRIDE;
   int same = vs->smap_valid && memcmp(&k->sh, sh, sizeof *sh) == 0 && k->nsph == f->nsph &&
              k->nconv == f->nconv && k->ntri == f->ntri && k->nobjs == nobjs &&
-             (nobjs == 0 || memcmp(k->objs, r->host_objs, nobjs * sizeof(float)) == 0) &&
-             k->nbvh == r->bvh_nkeys &&
-             (r->bvh_nkeys == 0 || memcmp(k->bvh, r->bvh_keys, r->bvh_nkeys * sizeof *k->bvh) == 0);
+             (nobjs == 0 || memcmp(k->objs, r->frame.host_objs, nobjs * sizeof(float)) == 0) &&
+             k->nbvh == r->frame.bvh_nkeys &&
+             (r->frame.bvh_nkeys == 0 ||
+              memcmp(k->bvh, r->frame.bvh_keys, r->frame.bvh_nkeys * sizeof *k->bvh) == 0);
   if (same)
     return 1;
   vs->smap_valid = 0;
   if (grow_staging((void **)&k->objs, &k->cap_objs, nobjs ? nobjs : 1, sizeof(float)) != 0)
     return -1;
-  mesh_key_t *bvh = realloc(k->bvh, (r->bvh_nkeys ? r->bvh_nkeys : 1) * sizeof *bvh);
+  mesh_key_t *bvh = realloc(k->bvh, (r->frame.bvh_nkeys ? r->frame.bvh_nkeys : 1) * sizeof *bvh);
   if (bvh == NULL)
     return -1;
   k->bvh = bvh;
   if (nobjs)
-    memcpy(k->objs, r->host_objs, nobjs * sizeof(float));
-  if (r->bvh_nkeys)
-    memcpy(k->bvh, r->bvh_keys, r->bvh_nkeys * sizeof *bvh);
+    memcpy(k->objs, r->frame.host_objs, nobjs * sizeof(float));
+  if (r->frame.bvh_nkeys)
+    memcpy(k->bvh, r->frame.bvh_keys, r->frame.bvh_nkeys * sizeof *bvh);
   k->sh = *sh, k->nsph = f->nsph, k->nconv = f->nconv, k->ntri = f->ntri, k->nobjs = nobjs;
-  k->nbvh = r->bvh_nkeys;
+  k->nbvh = r->frame.bvh_nkeys;
   return 0;
 }
 
@@ -815,7 +798,7 @@ static int render_shadow(renderer_t *r, struct vol_state *vs, const vfx_shadow_t
   }
   if (c == 1)
     return 0;
-  size_t lx = r->objects_local[0], ly = r->objects_local[1];
+  size_t lx = r->group[0], ly = r->group[1];
   size_t pitch = round_up((size_t)sh->size, SHADOW_PACKET * lx), rows = round_up(sh->size, ly);
   if (render_ensure_buffer(r, &vs->smap, &vs->cap_smap, pitch * rows, sizeof(float),
                            CL_MEM_READ_WRITE, 0, err, errlen))
@@ -824,9 +807,9 @@ static int render_shadow(renderer_t *r, struct vol_state *vs, const vfx_shadow_t
   cl_int ip = (cl_int)pitch;
   cl_kernel k = vs->kshadow;
   cl_int cr =
-      KERNEL_ARGS(CL_SUCCESS, k, 0, {sizeof r->frame, &r->frame}, {sizeof *sh, sh},
-                  {sizeof(cl_mem), &r->objs}, {sizeof(cl_mem), &r->nodes},
-                  {sizeof(cl_mem), &r->tris}, {sizeof(cl_mem), &vs->smap}, {sizeof ip, &ip});
+      KERNEL_ARGS(CL_SUCCESS, k, 0, {sizeof r->frame.consts, &r->frame.consts}, {sizeof *sh, sh},
+                  {sizeof(cl_mem), &r->frame.objs}, {sizeof(cl_mem), &r->frame.nodes},
+                  {sizeof(cl_mem), &r->frame.tris}, {sizeof(cl_mem), &vs->smap}, {sizeof ip, &ip});
   size_t global[2] = {pitch / SHADOW_PACKET, rows}, local[2] = {lx, ly};
   if (cr == CL_SUCCESS)
     cr = clEnqueueNDRangeKernel(r->dev.queue, k, 2, NULL, global, local, 0, NULL, NULL);
@@ -841,41 +824,45 @@ static int render_shadow(renderer_t *r, struct vol_state *vs, const vfx_shadow_t
 
 /* ---- The pass ------------------------------------------------------------------------------ */
 
-int render_volume_init(renderer_t *r, char *err, size_t errlen) {
-  struct vol_state *vs = calloc(1, sizeof *vs);
-  if (vs == NULL) {
-    set_err(err, errlen, "[renderer_create] out of memory");
+/* Drops the caches: the entries and the grid references they hold, and the shadow map's key. */
+static void volume_reset(renderer_t *r, void *state) {
+  (void)r;
+  struct vol_state *vs = state;
+  for (int i = 0; i < vs->nents; i++)
+    entry_clear(&vs->ents[i]);
+  free(vs->ents);
+  vs->ents = NULL;
+  vs->nents = 0;
+  vs->data_floats = 0;
+  free(vs->skey.objs);
+  free(vs->skey.bvh);
+  memset(&vs->skey, 0, sizeof vs->skey);
+  vs->smap_valid = 0;
+}
+
+static void volume_free(renderer_t *r, void *state) {
+  struct vol_state *vs = state;
+  if (vs == NULL)
+    return;
+  volume_reset(r, vs);
+  render_release((cl_kernel[]){vs->kvol, vs->kshadow, vs->kdown, vs->kup}, 4,
+                 (cl_mem[]){vs->recs, vs->data, vs->smap, vs->low_depth, vs->low_linear}, 5);
+  free(vs->host_recs);
+  free(vs);
+}
+
+static int volume_init(renderer_t *r, void **state, char *err, size_t errlen) {
+  struct vol_state *vs = render_state_new(state, sizeof *vs, err, errlen);
+  if (vs == NULL)
     return -1;
-  }
-  r->vol = vs;
   if ((vs->kvol = cl_dev_kernel(&r->dev, "volumes", err, errlen)) == NULL ||
       (vs->kshadow = cl_dev_kernel(&r->dev, "shadow_map", err, errlen)) == NULL ||
       (vs->kdown = cl_dev_kernel(&r->dev, "volume_depth_down", err, errlen)) == NULL ||
       (vs->kup = cl_dev_kernel(&r->dev, "volume_up", err, errlen)) == NULL)
     return -1;
+  /* The shadow map and the volumes work on packets of VOL_PACKET_H rows. */
+  render_frame_require(r, 1, VOL_PACKET_H);
   return 0;
-}
-
-void render_volume_free(renderer_t *r) {
-  struct vol_state *vs = r->vol;
-  if (vs == NULL)
-    return;
-  for (int i = 0; i < vs->nents; i++)
-    entry_clear(&vs->ents[i]);
-  free(vs->ents);
-  cl_mem bufs[5] = {vs->recs, vs->data, vs->smap, vs->low_depth, vs->low_linear};
-  for (int i = 0; i < 5; i++)
-    if (bufs[i])
-      clReleaseMemObject(bufs[i]);
-  cl_kernel ks[4] = {vs->kvol, vs->kshadow, vs->kdown, vs->kup};
-  for (int i = 0; i < 4; i++)
-    if (ks[i])
-      clReleaseKernel(ks[i]);
-  free(vs->host_recs);
-  free(vs->skey.objs);
-  free(vs->skey.bvh);
-  free(vs);
-  r->vol = NULL;
 }
 
 /* The volumes a frame draws: the scene's (layer volumes) and the cloud (layer cloud). */
@@ -902,10 +889,10 @@ static int by_dist(const void *a, const void *b) {
 
 /* Enqueues the volumes kernel over the 'pitch' x 'rows' frame 'f' with its opaque 'depth',
  * compositing into 'linear'. */
-static cl_int run_volumes(renderer_t *r, const vfx_frame_t *f, const vfx_shadow_t *sh, cl_int nv,
-                          cl_mem smap, cl_int spitch, cl_mem depth, cl_mem linear, size_t pitch,
-                          size_t rows, const size_t local[2]) {
-  struct vol_state *vs = r->vol;
+static cl_int run_volumes(renderer_t *r, struct vol_state *vs, const vfx_frame_t *f,
+                          const vfx_shadow_t *sh, cl_int nv, cl_mem smap, cl_int spitch,
+                          cl_mem depth, cl_mem linear, size_t pitch, size_t rows,
+                          const size_t local[2]) {
   cl_kernel k = vs->kvol;
   cl_int cr =
       KERNEL_ARGS(CL_SUCCESS, k, 0, {sizeof *f, f}, {sizeof *sh, sh}, {sizeof(cl_mem), &vs->recs},
@@ -922,10 +909,10 @@ static cl_int run_volumes(renderer_t *r, const vfx_frame_t *f, const vfx_shadow_
  * opaque depth brought down (volume_depth_down), the volumes kernel on a frame of wider pixels
  * over a transparent buffer, and the result composited over the full frame (volume_up).
  */
-static cl_int run_low_volumes(renderer_t *r, int d, const vfx_shadow_t *sh, cl_int nv, cl_mem smap,
-                              cl_int spitch, const size_t local[2], char *err, size_t errlen) {
-  struct vol_state *vs = r->vol;
-  vfx_frame_t f = r->frame;
+static cl_int run_low_volumes(renderer_t *r, struct vol_state *vs, int d, const vfx_shadow_t *sh,
+                              cl_int nv, cl_mem smap, cl_int spitch, const size_t local[2],
+                              char *err, size_t errlen) {
+  vfx_frame_t f = r->frame.consts;
   /* Low pixel i stands for full pixel d i, up to one past the frame's last (kernels/volume.cl). */
   cl_int lw = (f.width - 1) / d + 2, lh = (f.height - 1) / d + 2;
   size_t lp = round_up((size_t)lw, local[0] * VOL_PACKET_W),
@@ -937,16 +924,17 @@ static cl_int run_low_volumes(renderer_t *r, int d, const vfx_shadow_t *sh, cl_i
       render_ensure_buffer(r, &vs->low_linear, &vs->cap_low_linear, lpix, 4 * sizeof(float),
                            CL_MEM_READ_WRITE, 0, err, errlen))
     return CL_OUT_OF_RESOURCES;
-  cl_int pitch = (cl_int)r->pitch, clp = (cl_int)lp, cd = d;
+  cl_int pitch = (cl_int)r->frame.pitch, clp = (cl_int)lp, cd = d;
   size_t wg[2] = {VOL_UP_LX, 1}, down[2] = {lp, lr};
   /* volume_up in the objects pass's work-groups, whose pixels the pitch and rows are whole
    * multiples of. */
-  size_t up[2] = {r->pitch / VOL_UP_PACKET, r->rows},
-         up_wg[2] = {r->objects_local[0], r->objects_local[1] ? r->objects_local[1] : 1};
+  size_t up[2] = {r->frame.pitch / VOL_UP_PACKET, r->frame.rows},
+         up_wg[2] = {r->group[0], r->group[1] ? r->group[1] : 1};
   cl_kernel k = vs->kdown;
-  cl_int cr = KERNEL_ARGS(CL_SUCCESS, k, 0, {sizeof(cl_mem), &r->depth}, {sizeof pitch, &pitch},
-                          {sizeof f.width, &f.width}, {sizeof f.height, &f.height},
-                          {sizeof cd, &cd}, {sizeof(cl_mem), &vs->low_depth}, {sizeof clp, &clp});
+  cl_int cr =
+      KERNEL_ARGS(CL_SUCCESS, k, 0, {sizeof(cl_mem), &r->frame.depth}, {sizeof pitch, &pitch},
+                  {sizeof f.width, &f.width}, {sizeof f.height, &f.height}, {sizeof cd, &cd},
+                  {sizeof(cl_mem), &vs->low_depth}, {sizeof clp, &clp});
   if (cr == CL_SUCCESS)
     cr = clEnqueueNDRangeKernel(r->dev.queue, k, 2, NULL, down, wg, 0, NULL, NULL);
   const float clear = 0.0f;
@@ -962,22 +950,26 @@ static cl_int run_low_volumes(renderer_t *r, int d, const vfx_shadow_t *sh, cl_i
     f.step_x[i] *= (float)d, f.step_y[i] *= (float)d;
   }
   if (cr == CL_SUCCESS)
-    cr = run_volumes(r, &f, sh, nv, smap, spitch, vs->low_depth, vs->low_linear, lp, lr, local);
+    cr = run_volumes(r, vs, &f, sh, nv, smap, spitch, vs->low_depth, vs->low_linear, lp, lr, local);
   k = vs->kup;
-  float far_ = r->frame.far_;
+  float far_ = r->frame.consts.far_;
   cr = KERNEL_ARGS(cr, k, 0, {sizeof(cl_mem), &vs->low_linear}, {sizeof clp, &clp},
                    {sizeof lw, &lw}, {sizeof lh, &lh}, {sizeof(cl_mem), &vs->low_depth},
-                   {sizeof cd, &cd}, {sizeof far_, &far_}, {sizeof(cl_mem), &r->depth},
-                   {sizeof pitch, &pitch}, {sizeof(cl_mem), &r->linear});
+                   {sizeof cd, &cd}, {sizeof far_, &far_}, {sizeof(cl_mem), &r->frame.depth},
+                   {sizeof pitch, &pitch}, {sizeof(cl_mem), &r->frame.linear});
   if (cr == CL_SUCCESS)
     cr = clEnqueueNDRangeKernel(r->dev.queue, k, 2, NULL, up, up_wg, 0, NULL, NULL);
   return cr;
 }
 
-int render_pass_volumes(renderer_t *r, const render_scene_t *scene, unsigned layers, int *ran,
-                        char *err, size_t errlen) {
-  *ran = 0;
-  struct vol_state *vs = r->vol;
+/* The scene's volumes (LAYER_VOLUMES in the frame's layers) and the cloud (LAYER_CLOUD), lit
+ * through the objects' shadow map and composited over r->frame.linear up to r->frame.depth. */
+static int volume_run(renderer_t *r, void *state, const render_scene_t *scene,
+                      const render_params_t *p, const char **ran, char *err, size_t errlen) {
+  const char *name = *ran;
+  *ran = NULL;
+  unsigned layers = p->layers;
+  struct vol_state *vs = state;
   int cap = scene->nvolumes + 1;
   const rvolume_t **list = malloc(cap * sizeof *list);
   order_t *ord = malloc(cap * sizeof *ord);
@@ -1001,7 +993,7 @@ int render_pass_volumes(renderer_t *r, const render_scene_t *scene, unsigned lay
     memset(e + vs->nents, 0, (n - vs->nents) * sizeof *e);
     vs->ents = e, vs->nents = n;
   }
-  const float *l = r->frame.light_dir;
+  const float *l = r->frame.consts.light_dir;
   int changed = 0;
 
   for (int i = 0; i < n; i++) {
@@ -1066,7 +1058,7 @@ int render_pass_volumes(renderer_t *r, const render_scene_t *scene, unsigned lay
       continue;
     double d2 = 0;
     for (int k = 0; k < 3; k++) {
-      double c = 0.5 * ((double)e->tmin[k] + e->tmax[k]) - r->frame.eye[k];
+      double c = 0.5 * ((double)e->tmin[k] + e->tmax[k]) - r->frame.consts.eye[k];
       d2 += c * c;
     }
     ord[nd].dist = d2, ord[nd].index = i;
@@ -1126,7 +1118,7 @@ int render_pass_volumes(renderer_t *r, const render_scene_t *scene, unsigned lay
   vfx_shadow_t sh;
   memset(&sh, 0, sizeof sh);
   sh.size = 1;
-  int casters = r->frame.nsph + r->frame.nconv + r->frame.ntri > 0;
+  int casters = r->frame.consts.nsph + r->frame.consts.nconv + r->frame.consts.ntri > 0;
   int lit = l[0] != 0 || l[1] != 0 || l[2] != 0;
   if (casters && lit) {
     int size = scene->light.shadow_map > 0 ? scene->light.shadow_map : 1024;
@@ -1137,16 +1129,15 @@ int render_pass_volumes(renderer_t *r, const render_scene_t *scene, unsigned lay
   cl_mem smap = sh.enabled ? vs->smap : vs->data;
   cl_int spitch = sh.enabled ? vs->smap_pitch : 0;
   /* The objects work-group's pixels, or fewer if the device shrank it below one packet. */
-  size_t local[2] = {r->objects_local[0] * PACKET / VOL_PACKET_W,
-                     r->objects_local[1] / VOL_PACKET_H};
+  size_t local[2] = {r->group[0] * PACKET / VOL_PACKET_W, r->group[1] / VOL_PACKET_H};
   if (local[1] == 0)
     local[1] = 1;
   int d = scene->volume_div > 1 ? scene->volume_div : 1;
   if (d == 1)
-    cr = run_volumes(r, &r->frame, &sh, nd, smap, spitch, r->depth, r->linear, r->pitch, r->rows,
-                     local);
+    cr = run_volumes(r, vs, &r->frame.consts, &sh, nd, smap, spitch, r->frame.depth,
+                     r->frame.linear, r->frame.pitch, r->frame.rows, local);
   else
-    cr = run_low_volumes(r, d, &sh, nd, smap, spitch, local, err, errlen);
+    cr = run_low_volumes(r, vs, d, &sh, nd, smap, spitch, local, err, errlen);
   if (cr == CL_SUCCESS)
     cr = clFinish(r->dev.queue);
   if (cr != CL_SUCCESS) {
@@ -1155,7 +1146,7 @@ int render_pass_volumes(renderer_t *r, const render_scene_t *scene, unsigned lay
     rc = PROTO_E_DEVICE;
     goto done;
   }
-  *ran = 1;
+  *ran = name;
 
 done:
   free(list);
@@ -1163,3 +1154,19 @@ done:
   free(drawn);
   return rc;
 }
+
+/* Volumes are drawn in the beauty picture only. */
+static int volume_wants(const renderer_t *r, const render_scene_t *scene,
+                        const render_params_t *p) {
+  (void)r;
+  return (p->layers & (LAYER_VOLUMES | LAYER_CLOUD)) && p->aov == AOV_BEAUTY &&
+         (scene->nvolumes > 0 || scene->cloud.grid != NULL);
+}
+
+const render_pass_t render_pass_volumes = {.name = "volumes",
+                                           .layers = LAYER_VOLUMES | LAYER_CLOUD,
+                                           .init = volume_init,
+                                           .free = volume_free,
+                                           .wants = volume_wants,
+                                           .run = volume_run,
+                                           .reset = volume_reset};
