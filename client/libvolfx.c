@@ -3,7 +3,8 @@
  * non-blocking so that every wait goes through poll() and can honour a deadline; the framing
  * reader of the protocol library splits the byte stream into lines, and attachment bytes are
  * copied straight from the socket into the caller's buffer. Notifications met while waiting
- * for a response go to a bounded FIFO that volfx_next_notification() drains first.
+ * for a response go to a bounded FIFO that volfx_next_notification() drains first; a frame
+ * replaces the unread one of its subscription there, so the server's latest-wins holds.
  */
 #include "volfx.h"
 
@@ -47,7 +48,8 @@ struct volfx_conn {
   note_t *head; /* Oldest queued notification. */
   note_t *tail;
   size_t queued;
-  uint64_t dropped; /* Notifications evicted from the full queue. */
+  uint64_t dropped;  /* Notifications evicted from the full queue. */
+  uint64_t replaced; /* Frames replaced by a newer one of their subscription. */
 };
 
 /* A deadline in CLOCK_MONOTONIC milliseconds; NO_DEADLINE waits forever. */
@@ -360,8 +362,21 @@ static int read_message(volfx_conn_t *c, int64_t wait_deadline, int intr_ok, cJS
   return 0;
 }
 
-/* Appends a notification to the queue, evicting the oldest when it is full. Takes 'msg'. */
+static size_t purge_frames(volfx_conn_t *c, int64_t id);
+static int method_is(const cJSON *msg, const char *method);
+
+/*
+ * Appends a notification to the queue, evicting the oldest when it is full; a frame first
+ * removes the unread frame of its subscription. Takes 'msg'.
+ */
 static void enqueue(volfx_conn_t *c, cJSON *msg, volfx_attachment_t *att) {
+  if (method_is(msg, "frames")) {
+    const cJSON *p = cJSON_GetObjectItemCaseSensitive(msg, "params");
+    const cJSON *id = cJSON_GetObjectItemCaseSensitive(p, "id");
+    if (cJSON_IsNumber(id)) {
+      c->replaced += purge_frames(c, (int64_t)id->valuedouble);
+    }
+  }
   note_t *n = calloc(1, sizeof(*n));
   if (n == NULL) {
     cJSON_Delete(msg);
@@ -672,8 +687,9 @@ int volfx_subscribe(volfx_conn_t *conn, cJSON *params, int64_t *id, volfx_error_
   return 0;
 }
 
-/* Drops queued "frames" notifications of subscription 'id'. */
-static void purge_frames(volfx_conn_t *c, int64_t id) {
+/* Drops queued "frames" notifications of subscription 'id'; returns how many. */
+static size_t purge_frames(volfx_conn_t *c, int64_t id) {
+  size_t purged = 0;
   note_t *prev = NULL;
   note_t *n = c->head;
   while (n != NULL) {
@@ -690,6 +706,7 @@ static void purge_frames(volfx_conn_t *c, int64_t id) {
         c->tail = prev;
       }
       c->queued--;
+      purged++;
       cJSON_Delete(n->msg);
       volfx_attachment_free(&n->att);
       free(n);
@@ -698,6 +715,7 @@ static void purge_frames(volfx_conn_t *c, int64_t id) {
     }
     n = next;
   }
+  return purged;
 }
 
 int volfx_unsubscribe(volfx_conn_t *conn, int64_t id, cJSON **result, volfx_error_t *err) {
@@ -788,6 +806,10 @@ int volfx_next_frame(volfx_conn_t *conn, int timeout_ms, cJSON **params, volfx_a
 
 uint64_t volfx_queue_dropped(const volfx_conn_t *conn) {
   return conn != NULL ? conn->dropped : 0;
+}
+
+uint64_t volfx_frames_replaced(const volfx_conn_t *conn) {
+  return conn != NULL ? conn->replaced : 0;
 }
 
 void volfx_close(volfx_conn_t *conn) {

@@ -137,6 +137,13 @@ int volfx_next_frame(volfx_conn_t *conn, int timeout_ms, cJSON **params, volfx_a
 /* Notifications dropped from the full local queue so far (the oldest go first). */
 uint64_t volfx_queue_dropped(const volfx_conn_t *conn);
 
+/*
+ * Frames replaced in the local queue so far. The queue keeps the server's latest-wins: it holds
+ * at most one unread frame per subscription, and a newer frame of the same subscription
+ * replaces it (moving to the back of the queue), however long a call kept the caller away.
+ */
+uint64_t volfx_frames_replaced(const volfx_conn_t *conn);
+
 /* Closes the socket and frees 'conn' with everything queued. NULL is allowed. */
 void volfx_close(volfx_conn_t *conn);
 
@@ -145,6 +152,91 @@ void volfx_attachment_free(volfx_attachment_t *att);
 
 /* The description of a VOLFX_E_* or JSON-RPC code; "unknown error" otherwise. */
 const char *volfx_strerror(int code);
+
+/*
+ * Every method volfxd has, by name (libvolfx_methods.c). volfx_call() calls any of them with
+ * a cJSON params object; the typed wrappers below cover the ones a game loop uses. A param
+ * left out (NULL, or absent from 'params') is not sent, so the server's method table gives it
+ * its default (docs/protocol.md's method reference).
+ */
+#define VOLFX_METHOD_MAP(XX)                                                                       \
+  XX(SERVER_INFO, "server.info")                                                                   \
+  XX(RPC_DISCOVER, "rpc.discover")                                                                 \
+  XX(AUTH, "auth")                                                                                 \
+  XX(SCENE_LIST, "scene.list")                                                                     \
+  XX(SCENE_PRESETS, "scene.presets")                                                               \
+  XX(SCENE_CREATE, "scene.create")                                                                 \
+  XX(SCENE_DELETE, "scene.delete")                                                                 \
+  XX(SCENE_GET, "scene.get")                                                                       \
+  XX(SCENE_SET, "scene.set")                                                                       \
+  XX(SCENE_SAVE, "scene.save")                                                                     \
+  XX(SCENE_LOAD, "scene.load")                                                                     \
+  XX(SIM_STEP, "sim.step")                                                                         \
+  XX(SIM_PLAY, "sim.play")                                                                         \
+  XX(SIM_PAUSE, "sim.pause")                                                                       \
+  XX(RENDER, "render")                                                                             \
+  XX(FRAMES_SUBSCRIBE, "frames.subscribe")                                                         \
+  XX(FRAMES_UPDATE, "frames.update")                                                               \
+  XX(FRAMES_UNSUBSCRIBE, "frames.unsubscribe")                                                     \
+  XX(RENDER_SEQUENCE, "render.sequence")                                                           \
+  XX(SIM_BAKE, "sim.bake")                                                                         \
+  XX(JOB_LIST, "job.list")                                                                         \
+  XX(JOB_CANCEL, "job.cancel")                                                                     \
+  XX(FLUID_SET_PARTICLES, "fluid.set_particles")                                                   \
+  XX(FLUID_GET_PARTICLES, "fluid.get_particles")                                                   \
+  XX(CLOUD_GET_CELLS, "cloud.get_cells")                                                           \
+  XX(CLOUD_SET_CELLS, "cloud.set_cells")                                                           \
+  XX(STATS, "stats")                                                                               \
+  XX(SERVER_SHUTDOWN, "server.shutdown")
+
+typedef enum {
+#define XX(id, name) VOLFX_M_##id,
+  VOLFX_METHOD_MAP(XX)
+#undef XX
+      VOLFX_M_COUNT
+} volfx_method_t;
+
+/* The name of method 'm' ("scene.get"), or NULL for a value out of range. */
+const char *volfx_method_name(volfx_method_t m);
+
+/* volfx_call() of method 'm'; returns VOLFX_E_INVAL for a value out of range. */
+int volfx_call_method(volfx_conn_t *conn, volfx_method_t m, cJSON *params, cJSON **result,
+                      volfx_attachment_t *att, volfx_error_t *err);
+
+/*
+ * Typed wrappers; each returns as volfx_call(). 'scene' NULL means the server's default scene;
+ * a cJSON argument is taken (freed whatever the call returns); '*result', when 'result' is not
+ * NULL, receives the result, owned by the caller.
+ */
+/* server.info. */
+int volfx_info(volfx_conn_t *conn, cJSON **result, volfx_error_t *err);
+int volfx_scene_create(volfx_conn_t *conn, const char *name, const char *preset,
+                       volfx_error_t *err);
+int volfx_scene_delete(volfx_conn_t *conn, const char *name, volfx_error_t *err);
+/* scene.get of dotted 'path' (NULL: the whole document). */
+int volfx_scene_get(volfx_conn_t *conn, const char *scene, const char *path, cJSON **result,
+                    volfx_error_t *err);
+/* scene.set of one 'value' at dotted 'path'; '*version' (may be NULL) gets the new version. */
+int volfx_scene_set(volfx_conn_t *conn, const char *scene, const char *path, cJSON *value,
+                    int64_t *version, volfx_error_t *err);
+/* scene.set of an RFC 7386 merge 'patch', applied atomically. */
+int volfx_scene_patch(volfx_conn_t *conn, const char *scene, cJSON *patch, int64_t *version,
+                      volfx_error_t *err);
+/* sim.step of 'steps' steps (0: the server's default); '*result' gets {time, frame}. */
+int volfx_sim_step(volfx_conn_t *conn, const char *scene, int steps, cJSON **result,
+                   volfx_error_t *err);
+/* sim.play at 'rate' steps per second (0 or less: the server's default). */
+int volfx_sim_play(volfx_conn_t *conn, const char *scene, double rate, volfx_error_t *err);
+int volfx_sim_pause(volfx_conn_t *conn, const char *scene, volfx_error_t *err);
+/* render with 'params' (NULL: all defaults); the frame lands in 'att'. */
+int volfx_render(volfx_conn_t *conn, cJSON *params, cJSON **result, volfx_attachment_t *att,
+                 volfx_error_t *err);
+/*
+ * frames.update: changes subscription 'id''s view live (camera, width, height, fps, format,
+ * quality, layers in 'view', taken). A server without it answers -32601 (method not found).
+ */
+int volfx_frames_update(volfx_conn_t *conn, int64_t id, cJSON *view, volfx_error_t *err);
+int volfx_stats(volfx_conn_t *conn, cJSON **result, volfx_error_t *err);
 
 /*
  * A private volfxd for a C or C++ test suite (libvolfx_server.c). volfx_server_start() runs

@@ -8,7 +8,6 @@ kills everything after TOTAL_TIMEOUT seconds so the test never hangs.
 """
 
 import argparse
-import importlib.util
 import json
 import os
 import re
@@ -203,10 +202,11 @@ def test_cli(cli, work):
 
 
 def load_python_client():
-    spec = importlib.util.spec_from_file_location(
-        "volfx", os.path.join(ROOT, "client", "python", "volfx", "__init__.py"))
-    volfx = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(volfx)
+    """The package client/python/volfx of this tree (its modules import one another)."""
+    path = os.path.join(ROOT, "client", "python")
+    if path not in sys.path:
+        sys.path.insert(0, path)
+    import volfx
     return volfx
 
 

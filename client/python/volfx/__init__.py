@@ -10,21 +10,31 @@ when the request asked for ``encoding: "base64"``).
         c.set(path="camera.fov_y", value=50)
         result, png = c.render(256, 256)
         sid = c.subscribe(width=64, height=64, fps=10)
+        frame = c.latest(sid, timeout=5)      # the newest frame, or None
         for params, data in c.frames(count=3):
             print(params["frame"], len(data))
         c.unsubscribe(sid)
 
+- ``Client`` is blocking; ``AsyncClient`` (``volfx.aio``) is the same over asyncio streams.
+  Every server method has a wrapper (``volfx.methods``; ``METHODS`` maps method names to
+  them), and ``call``/``call_raw`` call any method by name.
+- Frames keep the server's latest-wins: per subscription the client holds only the newest
+  unread frame, however long a call blocks; ``replaced(sid)`` counts the frames a newer one
+  replaced before they were read. ``frames.ended`` (a deleted scene, a server shutting down)
+  is kept as ``ended(sid)`` and yielded by ``notifications()``.
+- ``batch()`` collects calls for one JSON-RPC batch line; its ``send()`` returns one
+  ``BatchReply`` (result or error) per call.
+
 Params left as None are not sent, so the server applies the defaults of its method table
 (docs/protocol.md's method reference); ``Client.defaults(method)`` reads them from rpc.discover.
 
-Run as a module it mirrors the C ``volfx`` CLI: ``python3 -m volfx --port P info`` (with
-``client/python`` on ``PYTHONPATH``). ``volfx.testing`` starts a private volfxd for a test
-suite and compares frames with golden images (docs/testing.md).
+``python3 -m volfx`` is a small command line over this client (info, get, set, step, play,
+pause, render, watch, stats, discover, scenes, call, shutdown); the C ``volfx`` is the full
+one (script, sequence, the render-farm commands). ``volfx.testing`` starts a private volfxd
+for a test suite and compares frames with golden images (docs/testing.md).
 """
 
 import argparse
-import base64
-import collections
 import json
 import os
 import re
@@ -34,51 +44,22 @@ import socket
 import sys
 import time
 
+from .methods import METHODS, Batch, BatchReply, Methods, _given
+from .wire import (ERROR_NAMES, ConnectionLost, Frame, Inbox, InboxViews, VolfxError,
+                   attachment_need, encode_line, error_of, holders, is_notification, parse_line,
+                   request)
+
+__all__ = ["Client", "AsyncClient", "Batch", "BatchReply", "Frame", "VolfxError",
+           "ConnectionLost", "METHODS", "ERROR_NAMES", "main"]
+
 DEFAULT_HOST = "127.0.0.1"
 DEFAULT_PORT = 7878
 
-# Notifications kept while nobody reads them; the oldest are dropped first.
-QUEUE_MAX = 256
-
-ERROR_NAMES = {
-    -32700: "parse error",
-    -32600: "invalid request",
-    -32601: "method not found",
-    -32602: "invalid params",
-    -32603: "internal error",
-    -32001: "unauthorized",
-    -32002: "busy",
-    -32003: "limit exceeded",
-    -32004: "not found",
-    -32005: "device error",
-}
+# Messages one drain reads at most, so that a fast stream cannot keep latest() from returning.
+DRAIN_MAX = 1024
 
 
-def _given(**params):
-    """The params that are not None: the ones left out take the server's defaults."""
-    return {k: v for k, v in params.items() if v is not None}
-
-
-class VolfxError(Exception):
-    """An error response from the server: JSON-RPC ``code``, ``message`` and ``data.path``."""
-
-    def __init__(self, code, message, path=None, data=None):
-        self.code = code
-        self.message = message
-        self.path = path
-        self.data = data
-        kind = ERROR_NAMES.get(code, "error %d" % code)
-        text = message if message.startswith(kind) else "%s: %s" % (kind, message)
-        if path:
-            text += " (path %s)" % path
-        super().__init__(text)
-
-
-class ConnectionLost(Exception):
-    """The connection closed, timed out or carried something that is not the protocol."""
-
-
-class Client:
+class Client(InboxViews, Methods):
     """One blocking connection to volfxd.
 
     ``host``/``port`` for TCP, or ``unix`` for a Unix socket path. ``token`` is sent with
@@ -99,8 +80,7 @@ class Client:
             self._sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
         self._buf = bytearray()
         self._next_id = 1
-        self._queue = collections.deque()
-        self.queue_dropped = 0
+        self.inbox = Inbox()
         self._discovered = None
         if token:
             self.call("auth", token=token)
@@ -115,11 +95,11 @@ class Client:
         return False
 
     def close(self):
-        """Closes the socket; queued notifications are discarded."""
+        """Closes the socket; unread frames and notifications are discarded."""
         if self._sock is not None:
             self._sock.close()
             self._sock = None
-        self._queue.clear()
+        self.inbox.clear()
 
     # -- framing ---------------------------------------------------------------------------
 
@@ -150,40 +130,38 @@ class Client:
         del self._buf[:n]
         return data
 
-    def _take_attachment(self, holder):
-        """Returns the bytes of ``holder["attachment"]`` (base64 ``data`` or raw), or None."""
-        if not isinstance(holder, dict) or not isinstance(holder.get("attachment"), dict):
-            return None
-        att = holder["attachment"]
-        for owner in (att, holder):
-            if isinstance(owner.get("data"), str):
-                return base64.b64decode(owner.pop("data"))
-        n = att.get("bytes")
-        if not isinstance(n, int) or n < 0:
-            raise ConnectionLost("attachment without a valid byte count")
-        return self._readexact(n)
-
     def _read_message(self):
-        """Reads one message and its attachment: (message, bytes or None)."""
+        """Reads one message and its attachments: ``(message, bytes or None)``, or for a batch
+        response ``(array, [bytes or None per response])``."""
         while True:
             line = self._readline()
             if line.strip():
                 break
-        try:
-            msg = json.loads(line)
-        except ValueError:
-            raise ConnectionLost("malformed line from the server: %r" % line[:200]) from None
-        if isinstance(msg, dict) and "method" in msg and "id" not in msg:
-            return msg, self._take_attachment(msg.get("params"))
-        if isinstance(msg, dict):
-            return msg, self._take_attachment(msg.get("result"))
-        return msg, None
+        msg = parse_line(line)
+        datas = []
+        for holder in holders(msg):
+            need = attachment_need(holder)
+            datas.append(self._readexact(need) if isinstance(need, int) else need)
+        if isinstance(msg, list):
+            return msg, datas
+        return msg, (datas[0] if datas else None)
 
-    def _enqueue(self, msg, data):
-        self._queue.append((msg, data))
-        while len(self._queue) > QUEUE_MAX:
-            self._queue.popleft()
-            self.queue_dropped += 1
+    def _send(self, value):
+        try:
+            self._sock.sendall(encode_line(value))
+        except socket.timeout:
+            raise ConnectionLost("timed out sending to the server") from None
+        except OSError as e:
+            raise ConnectionLost(str(e)) from None
+
+    def _await_answer(self, is_ours):
+        """Reads until the response ``is_ours`` accepts; notifications met go to the inbox."""
+        while True:
+            msg, data = self._read_message()
+            if is_notification(msg):
+                self.inbox.put(msg, data)
+            elif is_ours(msg):
+                return msg, data
 
     # -- calls -----------------------------------------------------------------------------
 
@@ -191,60 +169,41 @@ class Client:
         """Sends one request and returns ``(result, attachment bytes or None)``.
 
         ``params`` is a dict (or list), or None for none. Raises ``VolfxError`` for an error
-        response. Notifications that arrive first are queued for ``frames()``/``notifications()``.
+        response. Frames and notifications that arrive first are kept in ``inbox``.
         """
         rid = self._next_id
         self._next_id += 1
-        req = {"jsonrpc": "2.0", "id": rid, "method": method}
-        if params is not None:
-            req["params"] = params
-        line = json.dumps(req, separators=(",", ":"), allow_nan=False).encode() + b"\n"
-        try:
-            self._sock.sendall(line)
-        except socket.timeout:
-            raise ConnectionLost("timed out sending to the server") from None
-        except OSError as e:
-            raise ConnectionLost(str(e)) from None
-        while True:
-            msg, data = self._read_message()
-            if not isinstance(msg, dict):
-                continue
-            if "method" in msg and "id" not in msg:
-                self._enqueue(msg, data)
-                continue
-            mid = msg.get("id")
-            if mid != rid and not (mid is None and "error" in msg):
-                continue  # a stray response, not ours
-            if "error" in msg:
-                e = msg["error"] or {}
-                d = e.get("data")
-                path = d.get("path") if isinstance(d, dict) else None
-                raise VolfxError(e.get("code", -32603), e.get("message", ""), path, d)
-            return msg.get("result"), data
+        self._send(request(rid, method, params))
+        msg, data = self._await_answer(
+            lambda m: isinstance(m, dict) and (m.get("id") == rid
+                                               or (m.get("id") is None and "error" in m)))
+        err = error_of(msg)
+        if err is not None:
+            raise err
+        return msg.get("result"), data
 
     def call(self, method, **params):
         """Calls ``method`` with keyword params and returns the result (attachment dropped)."""
         return self.call_raw(method, params)[0]
 
-    # -- helpers ---------------------------------------------------------------------------
+    def _request(self, method, params, post=None, raw=False):
+        result, data = self.call_raw(method, params)
+        value = (result, data) if raw else result
+        return post(value) if post else value
 
-    def auth(self, token):
-        return self.call("auth", token=token)
+    def batch(self):
+        """A ``Batch``: add calls with the wrappers (each returns its index), then ``send()``
+        them as one line and get one ``BatchReply`` per call."""
+        return Batch(self)
 
-    def info(self):
-        return self.call("server.info")
-
-    def discover(self):
-        return self.call("rpc.discover")
-
-    def stats(self):
-        return self.call("stats")
-
-    def scenes(self):
-        return self.call("scene.list")
-
-    def shutdown(self):
-        return self.call("server.shutdown")
+    def _send_batch(self, batch):
+        ids, reqs = batch._ids_and_line(self._next_id)
+        self._next_id = ids[-1] + 1
+        self._send(reqs)
+        msg, datas = self._await_answer(
+            lambda m: isinstance(m, list) or (isinstance(m, dict) and m.get("id") is None
+                                              and "error" in m))
+        return batch._replies(ids, msg, datas if isinstance(msg, list) else [])
 
     def defaults(self, method):
         """``{param: default}`` of ``method`` from the server's rpc.discover (read once): the
@@ -257,88 +216,79 @@ class Client:
                         if "default" in (p.get("schema") or {})}
         raise ValueError("the server has no method %r" % method)
 
-    def get(self, path=None, scene=None):
-        """The scene document, or the value at dotted ``path``."""
-        return self.call("scene.get", **_given(scene=scene, path=path))
+    # -- frames and notifications ----------------------------------------------------------
 
-    def set(self, path, value, scene=None):
-        """Sets one value at dotted ``path``; returns ``{"version": n}``."""
-        return self.call("scene.set", **_given(scene=scene), path=path, value=value)
+    def _pump(self, wait):
+        """Reads what has arrived (all of it, at most DRAIN_MAX messages), waiting up to
+        ``wait`` seconds (None: forever) for the first. Returns whether anything came."""
+        got = False
+        for _ in range(DRAIN_MAX):
+            # Wait for the start of a message with select, so that a quiet stream returns
+            # instead of raising, while a message once started is read whole.
+            if not self._buf:
+                ready, _, _ = select.select([self._sock], [], [], 0 if got else wait)
+                if not ready:
+                    break
+            msg, data = self._read_message()
+            if is_notification(msg):
+                self.inbox.put(msg, data)
+                got = True
+        return got
 
-    def patch(self, patch, scene=None):
-        """Applies an RFC 7386 merge patch atomically; returns ``{"version": n}``."""
-        return self.call("scene.set", **_given(scene=scene), patch=patch)
-
-    def step(self, n=None, dt=None, scene=None):
-        return self.call("sim.step", **_given(scene=scene, steps=n, dt=dt))
-
-    def play(self, rate=None, scene=None):
-        return self.call("sim.play", **_given(scene=scene, rate=rate))
-
-    def pause(self, scene=None):
-        return self.call("sim.pause", **_given(scene=scene))
-
-    def render(self, width=None, height=None, format=None, **kw):
-        """Renders one frame; returns ``(result, bytes)``. ``kw``: scene, aov, layers, camera,
-        t, encoding, png_level."""
-        return self.call_raw("render", _given(width=width, height=height, format=format, **kw))
-
-    def subscribe(self, **kw):
-        """Starts a frame stream (``frames.subscribe``) and returns its id."""
-        return self.call("frames.subscribe", **_given(**kw))["id"]
-
-    def unsubscribe(self, sid):
-        """Ends a stream; returns ``{"id", "sent", "dropped"}``. Its queued frames are dropped."""
-        result = self.call("frames.unsubscribe", id=sid)
-        self._queue = collections.deque(
-            (m, d) for (m, d) in self._queue
-            if not (m.get("method") == "frames" and (m.get("params") or {}).get("id") == sid))
-        return result
-
-    def notifications(self, method=None, timeout=None, count=None):
-        """Yields ``(method, params, bytes)`` for notifications (of ``method`` when given),
-        queued ones first. Stops after ``count``, or when none came for ``timeout`` seconds
-        (None: the client's timeout)."""
+    def _wait_for(self, take, timeout):
+        """Drains the socket, then returns ``take()`` once it is not None, or None when
+        nothing came for ``timeout`` seconds (None: the client's timeout)."""
         wait = self.timeout if timeout is None else timeout
+        deadline = None if wait is None else time.monotonic() + wait
+        self._pump(0)
+        while True:
+            item = take()
+            if item is not None:
+                return item
+            left = None if deadline is None else deadline - time.monotonic()
+            if left is not None and left <= 0:
+                return None
+            self._pump(left)
+
+    def latest(self, sid, timeout=0):
+        """The newest unread ``Frame`` of subscription ``sid``, after reading everything that
+        has arrived; waits up to ``timeout`` seconds (None: the client's timeout) when there is
+        none. None when none came, or when the subscription has ended (see ``ended``)."""
+        return self._wait_for(
+            lambda: self.inbox.take_frame(sid) or (False if sid in self.inbox.ended else None),
+            timeout) or None
+
+    def _each(self, take, timeout, count):
         got = 0
         while count is None or got < count:
-            item = self._pop(method)
+            item = self._wait_for(take, timeout)
             if item is None:
-                item = self._wait_notification(method, wait)
-                if item is None:
-                    return
-            msg, data = item
+                return
             got += 1
-            yield msg.get("method"), msg.get("params"), data
+            yield item
 
-    def frames(self, timeout=None, count=None):
-        """Yields ``(params, bytes)`` for each ``frames`` notification; see notifications()."""
-        for _, params, data in self.notifications("frames", timeout, count):
-            yield params, data
+    def frames(self, timeout=None, count=None, sid=None):
+        """Yields the newest unread ``Frame`` (``params, data``) of ``sid`` (of any
+        subscription when None) each time one is there, after reading everything that has
+        arrived. Stops after ``count``, or when none came for ``timeout`` seconds (None: the
+        client's timeout)."""
+        return self._each(lambda: self.inbox.take_frame(sid), timeout, count)
 
-    def _pop(self, method):
-        for i, (msg, data) in enumerate(self._queue):
-            if method is None or msg.get("method") == method:
-                del self._queue[i]
-                return msg, data
-        return None
+    def notifications(self, method=None, timeout=None, count=None):
+        """Yields ``(method, params, bytes)`` for notifications (of ``method`` when given):
+        ``job.progress``, ``frames.ended``, and the newest waiting frame of each subscription.
+        Stops after ``count``, or when none came for ``timeout`` seconds (None: the client's
+        timeout)."""
+        return self._each(lambda: self.inbox.take(method), timeout, count)
 
-    def _wait_notification(self, method, wait):
-        deadline = None if wait is None else time.monotonic() + wait
-        while True:
-            # Wait for the start of a message with select, so that a quiet stream ends the
-            # generator instead of raising, while a message once started is read whole.
-            if not self._buf:
-                left = None if deadline is None else max(0.0, deadline - time.monotonic())
-                ready, _, _ = select.select([self._sock], [], [], left)
-                if not ready:
-                    return None
-            msg, data = self._read_message()
-            if not (isinstance(msg, dict) and "method" in msg and "id" not in msg):
-                continue
-            if method is None or msg.get("method") == method:
-                return msg, data
-            self._enqueue(msg, data)
+
+def __getattr__(name):
+    # AsyncClient lives in volfx.aio, imported on first use so that the blocking client does
+    # not load asyncio.
+    if name == "AsyncClient":
+        from .aio import AsyncClient
+        return AsyncClient
+    raise AttributeError("module 'volfx' has no attribute %r" % name)
 
 
 # -- command line ----------------------------------------------------------------------------
@@ -382,6 +332,11 @@ def _frame_params(a):
             p[key] = v
     if getattr(a, "layers", None):
         p["layers"] = [x for x in a.layers.split(",") if x]
+    if getattr(a, "camera", None):
+        try:
+            p["camera"] = json.loads(a.camera)
+        except ValueError as e:
+            raise SystemExit("volfx: --camera needs a JSON object: %s" % e)
     if p.get("aov") not in (None, "beauty") and "format" not in p:
         p["format"] = "f32"
     return p
@@ -478,7 +433,9 @@ def _run(c, a):
 
 
 def main(argv=None):
-    ap = argparse.ArgumentParser(prog="volfx", description="Python client of volfxd.")
+    ap = argparse.ArgumentParser(
+        prog="volfx", description="A small command line over the Python client of volfxd; "
+        "the C volfx has the full set (script, sequence, the render-farm commands).")
     ap.add_argument("--host", default=DEFAULT_HOST)
     ap.add_argument("--port", type=int, default=DEFAULT_PORT)
     ap.add_argument("--unix")
@@ -504,6 +461,7 @@ def main(argv=None):
         s.add_argument("-f", "--format")
         s.add_argument("--aov")
         s.add_argument("--layers")
+        s.add_argument("--camera", help="JSON members of the scene camera for these frames")
         s.add_argument("--encoding")
         if name == "watch":
             s.add_argument("--fps", type=float)

@@ -1,4 +1,5 @@
-"""``python3 -m volfx ...``: the command-line client, like the C ``volfx`` CLI."""
+"""``python3 -m volfx ...``: a small command line over the Python client (the C ``volfx``
+is the full one; see ``volfx.main``)."""
 
 import sys
 
