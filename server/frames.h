@@ -82,8 +82,9 @@ cJSON *render_job_times(const job_t *j);
        .flags = SCH_NO_DEFAULT},                                                                   \
       {.name = "depth",                                                                            \
        .type = SCH_OBJECT,                                                                         \
-       .desc = "The client's own depth buffer, drawn with the frame's camera: effects stop at it " \
-               "as at the objects.",                                                               \
+       .desc = "The game's depth buffer {width, height, data, convention, near, far, reversed}, "  \
+               "drawn with the frame's camera: effects stop at it as at the objects (see "         \
+               "Compositing).",                                                                    \
        .fields = render_depth_fields,                                                              \
        .flags = SCH_NO_DEFAULT},                                                                   \
   {                                                                                                \
