@@ -36,7 +36,8 @@ typedef struct vfx_frame {
   float light_dir[3]; /* Unit, towards the light. */
   float light_rgb[3]; /* Light colour times intensity. */
   float ambient;
-  float bg[4]; /* Background: linear RGB and alpha. */
+  float bg[4];  /* Background pixels: linear RGB and alpha; (0, 0, 0, 0) when transparent. */
+  float sky[3]; /* The scene's background colour as light that surfaces reflect (the fluid). */
 } vfx_frame_t;
 
 /*

@@ -450,9 +450,9 @@ __kernel void fluid(vfx_frame_t f, vfx_fluid_t fl, __global const int *restrict 
   pf tg = native_exp2(depth_h * native_log2(fl.color[1]));
   pf tbl = native_exp2(depth_h * native_log2(fl.color[2]));
   pf refl = 1.0f - fr;
-  pf cr = fr * (f.bg[0] * sky + spec * f.light_rgb[0]);
-  pf cg = fr * (f.bg[1] * sky + spec * f.light_rgb[1]);
-  pf cb = fr * (f.bg[2] * sky + spec * f.light_rgb[2]);
+  pf cr = fr * (f.sky[0] * sky + spec * f.light_rgb[0]);
+  pf cg = fr * (f.sky[1] * sky + spec * f.light_rgb[1]);
+  pf cb = fr * (f.sky[2] * sky + spec * f.light_rgb[2]);
   pf wr = refl * tr, wg = refl * tg, wb = refl * tbl;
   float hr[FLUID_LANES], hg[FLUID_LANES], hb[FLUID_LANES], kr[FLUID_LANES], kg[FLUID_LANES],
       kb[FLUID_LANES], ht[FLUID_LANES];
@@ -463,9 +463,12 @@ __kernel void fluid(vfx_frame_t f, vfx_fluid_t fl, __global const int *restrict 
   for (int l = 0; l < FLUID_LANES; l++) {
     if (!fd[l])
       continue;
+    /* Premultiplied over what lies behind: the water lets through its transmittance of it, and
+     * its coverage is 1 minus that (the channels' mean, as alpha is one number). */
     float4 behind = vload4(ol[l], linear);
+    float through = (kr[l] + kg[l] + kb[l]) * (1.0f / 3.0f);
     vstore4((float4)(hr[l] + kr[l] * behind.x, hg[l] + kg[l] * behind.y, hb[l] + kb[l] * behind.z,
-                     1.0f),
+                     1.0f - through * (1.0f - behind.w)),
             ol[l], linear);
     depth[ol[l]] = ht[l];
   }

@@ -292,14 +292,11 @@ static inline wfloat wave_glow(wfloat h, __global const float *wv) {
   return t * t * fma(-2.0f, t, 3.0f);
 }
 
-/* Adds the glow 'r', 'g', 'b' of 4 pixels to their linear RGBA at 'p' and raises their alpha to
- * at least 'a'. */
-static inline void wave_add4(__global float *restrict p, float4 r, float4 g, float4 b, float4 a) {
-  const float ni = -INFINITY;
+/* Adds the glow 'r', 'g', 'b' of 4 pixels to their linear RGBA at 'p'; alpha is left as it is. */
+static inline void wave_add4(__global float *restrict p, float4 r, float4 g, float4 b) {
   float16 v = vload16(0, p);
   v += (float16)(r.s0, g.s0, b.s0, 0.0f, r.s1, g.s1, b.s1, 0.0f, r.s2, g.s2, b.s2, 0.0f, r.s3, g.s3,
                  b.s3, 0.0f);
-  v = max(v, (float16)(ni, ni, ni, a.s0, ni, ni, ni, a.s1, ni, ni, ni, a.s2, ni, ni, ni, a.s3));
   vstore16(v, 0, p);
 }
 
@@ -316,9 +313,9 @@ static inline void wave_store(const vfx_frame_t *f, __global float *restrict lin
                               int touched, float scale, int op) {
   if (mode & WAVES_STORE_H)
     WAVE_STORE(hsum, 0, hout + o);
-  /* The glow is light, so it is added to the colour; alpha becomes at least its strength, so
-   * that glow over a transparent background shows. */
-  wfloat ga = min(max(max(gr, gg), gb), 1.0f);
+  /* The glow is emitted light that hides nothing behind it: it is added to the colour and leaves
+   * alpha (the coverage) alone, so that over a transparent background the premultiplied pixel
+   * composites as glow added to whatever lies behind. */
   if (mode & WAVES_TONEMAP) {
     if ((mode & WAVES_EMPTY) && !touched) {
       /* The background alone: its four channels through one tone map, for the same bytes. */
@@ -333,15 +330,15 @@ static inline void wave_store(const vfx_frame_t *f, __global float *restrict lin
     if (!(mode & WAVES_EMPTY))
       tone_load16(linear + 4 * o, &r, &g, &b, &a);
     tone_store16(rgba8 + 4 * o, tone_colour(r + gr, scale, op), tone_colour(g + gg, scale, op),
-                 tone_colour(b + gb, scale, op), tone_alpha(max(a, ga)));
+                 tone_colour(b + gb, scale, op), tone_alpha(a));
     return;
   }
   if (!(mode & WAVES_ADD) || !touched)
     return;
-  wave_add4(linear + 4 * o, gr.lo.lo, gg.lo.lo, gb.lo.lo, ga.lo.lo);
-  wave_add4(linear + 4 * o + 16, gr.lo.hi, gg.lo.hi, gb.lo.hi, ga.lo.hi);
-  wave_add4(linear + 4 * o + 32, gr.hi.lo, gg.hi.lo, gb.hi.lo, ga.hi.lo);
-  wave_add4(linear + 4 * o + 48, gr.hi.hi, gg.hi.hi, gb.hi.hi, ga.hi.hi);
+  wave_add4(linear + 4 * o, gr.lo.lo, gg.lo.lo, gb.lo.lo);
+  wave_add4(linear + 4 * o + 16, gr.lo.hi, gg.lo.hi, gb.lo.hi);
+  wave_add4(linear + 4 * o + 32, gr.hi.lo, gg.hi.lo, gb.hi.lo);
+  wave_add4(linear + 4 * o + 48, gr.hi.hi, gg.hi.hi, gb.hi.hi);
 }
 
 /*

@@ -4,7 +4,8 @@
  * whether it wants to run ('wants') and runs those that do, in the table's order: the drawing
  * passes ("objects": ray casting and shading into linear colour and depth; "fluid": the
  * particles as metaballs; "volumes": mist, smoke and the cloud; "waves": the energy waves'
- * closed-form glow, or their H as the wave_h aov), then the passes that finish the picture
+ * closed-form glow, or their H as the wave_h aov), with "game_depth" after the objects when the
+ * client sent its own depth buffer, then the passes that finish the picture
  * ("resolve" for an anti-aliased frame, else "tonemap" for an 8-bit one), "readback", and the
  * format's encoder (render_format.c) unless the caller keeps that for itself. When the last
  * drawing pass can tone-map its pixels (PASS_TONEMAPS) it does so for an 8-bit frame, and there
@@ -64,8 +65,9 @@ static int aov_drawn(const renderer_t *r, const render_scene_t *scene, const ren
 /*
  * Which passes the frame drawn as 'dp' runs ('run[i]'), and whether its last drawing pass
  * tone-maps the picture itself: for an 8-bit beauty frame that is not anti-aliased, when that
- * pass can. Then, when no pass runs between the first and that one, the first need not draw an
- * empty scene either. The finishing passes are asked last, knowing both.
+ * pass can. Then, when no pass runs between the first and that one and none needs what the
+ * first drew (PASS_NEEDS_BASE), the first need not draw an empty scene either. The finishing passes
+ * are asked last, knowing both.
  */
 static void plan_frame(renderer_t *r, const render_scene_t *scene, const render_params_t *p,
                        const render_params_t *dp, const render_format_t *fmt, int run[]) {
@@ -82,6 +84,9 @@ static void plan_frame(renderer_t *r, const render_scene_t *scene, const render_
   for (size_t i = 0; i < NPASSES; i++)
     if (passes[i]->layers == 0)
       run[i] = passes[i]->wants(r, scene, dp);
+  for (size_t i = 0; i < NPASSES; i++)
+    if (run[i] && (passes[i]->flags & PASS_NEEDS_BASE))
+      f->base_optional = 0;
 }
 
 int renderer_render(renderer_t *r, const render_scene_t *scene, const render_params_t *p,
@@ -253,6 +258,16 @@ static int warm_up(renderer_t *r, char *err, size_t errlen) {
     p.layers = LAYER_ALL & ~LAYER_WAVES;
     rc = renderer_render(r, &scene, &p, &out, err, errlen);
     free(out.bytes);
+  }
+  if (rc == 0) { /* The game-depth pass, with a client's depth buffer. */
+    float z[64];
+    for (int i = 0; i < 64; i++)
+      z[i] = 4.0f;
+    render_depth_t depth = {.width = 8, .height = 8, .z = z};
+    p.depth = &depth;
+    rc = renderer_render(r, &scene, &p, &out, err, errlen);
+    free(out.bytes);
+    p.depth = NULL;
   }
   scene.antialias = 2; /* The resolve kernels, 8-bit and linear. */
   for (int f = 0; rc == 0 && f < 2; f++) {

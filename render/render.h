@@ -46,7 +46,7 @@ extern const char *const render_layer_names[];
  * render_pass_t (render_internal.h) in render_<name>.c. The drawing passes come first; the
  * last ones finish the picture (resolve, or the tone map).
  */
-#define RENDER_PASSES(X) X(objects) X(fluid) X(volumes) X(waves) X(resolve) X(tonemap)
+#define RENDER_PASSES(X) X(objects) X(game_depth) X(fluid) X(volumes) X(waves) X(resolve) X(tonemap)
 
 /* What a frame shows: the picture, or one of its other outputs. */
 typedef enum { AOV_BEAUTY, AOV_DEPTH, AOV_WAVE_H, AOV_COUNT } aov_t;
@@ -54,6 +54,51 @@ typedef enum { AOV_BEAUTY, AOV_DEPTH, AOV_WAVE_H, AOV_COUNT } aov_t;
 extern const char *const render_aov_names[];
 /* The aov named 'name', or -1. */
 int render_aov_parse(const char *name);
+
+/*
+ * A client's depth buffer (the game's own picture, drawn with the frame's camera), which clips
+ * every effect as the objects' depth does: 'z' holds width x height view-space depths (distance
+ * along the camera's view axis, world units), rows top first, +INFINITY where nothing is.
+ * render_depth_make converts what the client sent to this (render_game_depth.c).
+ */
+typedef struct render_depth {
+  uint32_t width, height;
+  float *z;
+} render_depth_t;
+
+/* How a client's depth values are given (the wire names in render_depth_convention_names). */
+typedef enum {
+  DEPTH_LINEAR, /* View-space distance along the view axis; at or past 'far' (if set) nothing. */
+  DEPTH_RAY,    /* Distance along each pixel's ray from the eye, as the depth aov gives it. */
+  DEPTH_NDC_GL, /* OpenGL window depth mapped to [-1, 1] NDC z: -1 at near, 1 at far. */
+  DEPTH_NDC_01, /* D3D / Vulkan / Metal NDC z in [0, 1]: 0 at near, 1 at far. */
+  DEPTH_CONVENTION_COUNT
+} render_depth_convention_t;
+extern const char *const render_depth_convention_names[];
+
+/*
+ * View-space depth of one value 'd' given in 'conv' with the projection's 'near' and 'far' (for
+ * the ndc conventions; near > far is reversed Z, and the far plane's value means nothing there:
+ * +INFINITY). For DEPTH_RAY, 'cos_axis' is the cosine between the pixel's ray and the view axis.
+ * Returns the depth, or NAN when 'd' lies outside the convention's range.
+ */
+double render_depth_view_z(render_depth_convention_t conv, double d, double near_, double far_,
+                           double cos_axis);
+
+/*
+ * Converts width x height little-endian f32 values of 'conv' seen through camera 'cam' at that
+ * size into a new render_depth_t. 'reversed' (ndc only): reversed Z, the near plane at 1 and the
+ * far plane at 0 (ndc_01) or -1 (ndc_gl). 'far_' <= 0 leaves a linear or ray depth unbounded.
+ * Returns it, or NULL with 'err' naming the first bad value (non-finite, negative or out of
+ * the convention's range) or the lack of memory.
+ */
+render_depth_t *render_depth_make(const void *le_f32, uint32_t width, uint32_t height,
+                                  render_depth_convention_t conv, int reversed, double near_,
+                                  double far_, const rcamera_t *cam, char *err, size_t errlen);
+void render_depth_free(render_depth_t *d);
+
+/* What background pixels show: RENDER_BG_DEFAULT follows the scene's transparent_background. */
+typedef enum { RENDER_BG_DEFAULT, RENDER_BG_SCENE, RENDER_BG_TRANSPARENT } render_background_t;
 
 typedef struct render_params {
   uint32_t width, height;
@@ -66,6 +111,9 @@ typedef struct render_params {
                               per wave and ray instead, for comparisons (tests/bench). */
   int raw;                 /* Leave the format's encoding to the caller (render_output_encode):
                               the bytes are the pixels of its source. */
+  render_background_t background; /* The scene's, or transparent black (0, 0, 0, 0); either
+                              way colours are premultiplied by alpha, the coverage. */
+  const render_depth_t *depth;    /* The client's depth, width x height; or NULL. */
 } render_params_t;
 
 #define RENDER_MAX_PASSES 12

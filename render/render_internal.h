@@ -77,6 +77,9 @@ typedef struct render_frame {
 
 /* A pass may tone-map its own output when it is the last to draw (render_frame_t.fuse_tonemap). */
 #define PASS_TONEMAPS 1
+/* A pass reads what the first pass drew (linear and depth): when it runs, the first pass draws
+ * even an empty scene (no base_optional). */
+#define PASS_NEEDS_BASE 2
 
 /*
  * One pass of the frame plan, listed in RENDER_PASSES (render.h). Each pass keeps its kernels,

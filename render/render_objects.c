@@ -597,10 +597,15 @@ static int objects_run(renderer_t *r, void *state, const render_scene_t *scene,
   for (int i = 0; i < 3; i++) {
     f.light_dir[i] = len > 0 ? (float)(l[i] / len) : 0.0f;
     f.light_rgb[i] = scene->light.color[i] * scene->light.intensity;
-    f.bg[i] = scene->background[i];
+    f.sky[i] = scene->background[i];
   }
   f.ambient = scene->light.ambient;
-  f.bg[3] = scene->transparent_background ? 0.0f : 1.0f;
+  /* A transparent background is transparent black, so that every pixel is premultiplied. */
+  int clear = p->background == RENDER_BG_TRANSPARENT ||
+              (p->background == RENDER_BG_DEFAULT && scene->transparent_background);
+  for (int i = 0; i < 3; i++)
+    f.bg[i] = clear ? 0.0f : scene->background[i];
+  f.bg[3] = clear ? 0.0f : 1.0f;
 
   if (render_ensure_buffer(r, &r->frame.objs, &r->frame.cap_objs, nobj, sizeof(float),
                            CL_MEM_READ_ONLY, 1, err, errlen) ||

@@ -260,13 +260,13 @@ static void on_tick(uv_timer_t *t) {
   j->ctx = sub;
   sub->frame_bound = render_answer_bound(j, sub->base64);
   if (!output_total_fits(s, sub->frame_bound)) {
-    render_scene_unref(j->scene);
+    render_job_release(j);
     free(j);
     sub->dropped++; /* The server's output budget is spent: this frame is skipped. */
     return;
   }
   if (worker_submit(s->worker, j) != 0) {
-    render_scene_unref(j->scene);
+    render_job_release(j);
     free(j);
     sub->dropped++; /* The render queue is full: this frame is skipped. */
     return;
@@ -299,7 +299,7 @@ static void subscribe(call_t *call) {
     call_error(call, code, path, "%s", msg);
     return;
   }
-  render_scene_unref(probe.scene);
+  render_job_release(&probe);
 
   sub_t *sub = calloc(1, sizeof *sub);
   if (!sub) {

@@ -73,6 +73,20 @@ cJSON *render_job_times(const job_t *j);
        .type = SCH_ANY,                                                                            \
        .desc = "Members of the scene camera overriding it for this frame.",                        \
        .flags = SCH_NO_DEFAULT},                                                                   \
+      {.name = "background",                                                                       \
+       .type = SCH_ENUM,                                                                           \
+       .desc = "scene: the scene's background colour; transparent: transparent black, for "        \
+               "compositing (colours premultiplied by alpha). Default: transparent when the "      \
+               "scene's render.transparent_background is true, else scene.",                       \
+       .enum_values = render_backgrounds,                                                          \
+       .flags = SCH_NO_DEFAULT},                                                                   \
+      {.name = "depth",                                                                            \
+       .type = SCH_OBJECT,                                                                         \
+       .desc = "The game's depth buffer {width, height, data, convention, near, far, reversed}, "  \
+               "drawn with the frame's camera: effects stop at it as at the objects (see "         \
+               "Compositing).",                                                                    \
+       .fields = render_depth_fields,                                                              \
+       .flags = SCH_NO_DEFAULT},                                                                   \
   {                                                                                                \
     .name = "png_level", .type = SCH_INTEGER,                                                      \
     .desc = "zlib level for png, or -1 for the fast default (level 1, no filter).", .min = -1,     \
@@ -89,6 +103,12 @@ cJSON *render_job_times(const job_t *j);
   }
 
 extern const char *const render_encodings[];
+extern const char *const render_backgrounds[];
+extern const sch_field_t render_depth_fields[];
+
+/* Drops what a render job made by render_job_from_params holds (its scene reference and depth
+ * buffer) when it will not be submitted. */
+void render_job_release(job_t *j);
 extern const sch_field_t render_layer_item;
 
 #endif

@@ -346,7 +346,7 @@ static void submit_render(seq_job_t *job) {
   j->done = render_done;
   j->ctx = job;
   if (worker_submit(s->worker, j) != 0) {
-    render_scene_unref(j->scene);
+    render_job_release(j);
     free(j);
     retry_later(job, on_retry_render);
     return;
@@ -608,7 +608,7 @@ static void render_sequence(call_t *call) {
     call_error(call, code, path, "%s", msg);
     return;
   }
-  render_scene_unref(probe.scene);
+  render_job_release(&probe);
   if (job_dir(call, dir) != 0)
     return;
   seq_job_t *job = job_new(call, e, dir);

@@ -4,6 +4,7 @@
  * the render worker; the loop thread only validates, queues and answers.
  */
 #include <math.h>
+#include <stdarg.h>
 #include <stdio.h>
 #include <stdlib.h>
 #include <string.h>
@@ -12,6 +13,135 @@
 #include "frames.h"
 
 const char *const render_encodings[] = {"binary", "base64", NULL};
+/* The 'background' param's values, in render_background_t's order from RENDER_BG_SCENE. */
+const char *const render_backgrounds[] = {"scene", "transparent", NULL};
+const sch_field_t render_depth_fields[] = {
+    {.name = "width",
+     .type = SCH_INTEGER,
+     .desc = "The buffer's width: the frame's width.",
+     .unit = "pixels",
+     .min = 1,
+     .max = INFINITY,
+     .flags = SCH_REQUIRED},
+    {.name = "height",
+     .type = SCH_INTEGER,
+     .desc = "The buffer's height: the frame's height.",
+     .unit = "pixels",
+     .min = 1,
+     .max = INFINITY,
+     .flags = SCH_REQUIRED},
+    {.name = "data",
+     .type = SCH_STRING,
+     .desc = "Base64 of width x height little-endian f32 values, rows top first.",
+     .flags = SCH_REQUIRED},
+    {.name = "convention",
+     .type = SCH_ENUM,
+     .desc = "linear: distance along the view axis; ray: distance along the pixel's ray (the "
+             "depth aov's); ndc_gl: OpenGL NDC z in [-1, 1]; ndc_01: D3D/Vulkan NDC z in [0, 1].",
+     .enum_values = render_depth_convention_names,
+     .def_str = "linear"},
+    {.name = "near",
+     .type = SCH_NUMBER,
+     .desc = "The game's near plane distance; needed by the ndc conventions.",
+     .unit = "world units",
+     .min = 0,
+     .max = INFINITY,
+     .flags = SCH_NO_DEFAULT | SCH_POSITIVE},
+    {.name = "far",
+     .type = SCH_NUMBER,
+     .desc = "The game's far plane distance; needed by the ndc conventions. For linear and ray, "
+             "values at or past it mean no geometry.",
+     .unit = "world units",
+     .min = 0,
+     .max = INFINITY,
+     .flags = SCH_NO_DEFAULT | SCH_POSITIVE},
+    {.name = "reversed",
+     .type = SCH_BOOL,
+     .desc = "ndc conventions: reversed Z (the near plane at 1, the far plane at 0 or -1).",
+     .def = 0},
+    {0}};
+
+void render_job_release(job_t *j) {
+  render_scene_unref(j->scene);
+  j->scene = NULL;
+  render_depth_free(j->depth);
+  j->depth = NULL;
+  j->params.depth = NULL;
+}
+
+/* Fails a depth param at 'member' with a message; returns PROTO_E_INVALID_PARAMS. */
+static int depth_error(char *path, size_t pathlen, char *msg, size_t msglen, const char *member,
+                       const char *fmt, ...) __attribute__((format(printf, 6, 7)));
+static int depth_error(char *path, size_t pathlen, char *msg, size_t msglen, const char *member,
+                       const char *fmt, ...) {
+  snprintf(path, pathlen, "depth.%s", member);
+  int n = snprintf(msg, msglen, "invalid params: depth.%s ", member);
+  va_list ap;
+  va_start(ap, fmt);
+  if (n > 0 && (size_t)n < msglen)
+    vsnprintf(msg + n, msglen - (size_t)n, fmt, ap);
+  va_end(ap);
+  return PROTO_E_INVALID_PARAMS;
+}
+
+/*
+ * Decodes the 'depth' param 'o' (validated by render_depth_fields) for a frame of j->params'
+ * size seen through 'cam' into j->depth. Returns 0 or PROTO_E_INVALID_PARAMS with 'path' and
+ * 'msg' naming the member.
+ */
+static int depth_from_param(const cJSON *o, job_t *j, const rcamera_t *cam, char *path,
+                            size_t pathlen, char *msg, size_t msglen) {
+  double w = cJSON_GetObjectItem(o, "width")->valuedouble;
+  double h = cJSON_GetObjectItem(o, "height")->valuedouble;
+  if (w != j->params.width)
+    return depth_error(path, pathlen, msg, msglen, "width", "%.15g is not the frame's width %u", w,
+                       j->params.width);
+  if (h != j->params.height)
+    return depth_error(path, pathlen, msg, msglen, "height", "%.15g is not the frame's height %u",
+                       h, j->params.height);
+  const cJSON *conv_item = cJSON_GetObjectItem(o, "convention");
+  int conv = DEPTH_LINEAR;
+  for (int i = 0; conv_item && render_depth_convention_names[i]; i++)
+    if (strcmp(conv_item->valuestring, render_depth_convention_names[i]) == 0)
+      conv = i;
+  const cJSON *nr = cJSON_GetObjectItem(o, "near"), *fr = cJSON_GetObjectItem(o, "far");
+  double near_ = nr ? nr->valuedouble : 0, far_ = fr ? fr->valuedouble : 0;
+  int ndc = conv == DEPTH_NDC_GL || conv == DEPTH_NDC_01;
+  if (ndc && !nr)
+    return depth_error(path, pathlen, msg, msglen, "near", "is needed by the %s convention",
+                       render_depth_convention_names[conv]);
+  if (ndc && !fr)
+    return depth_error(path, pathlen, msg, msglen, "far", "is needed by the %s convention",
+                       render_depth_convention_names[conv]);
+  if (ndc && !(far_ > near_))
+    return depth_error(path, pathlen, msg, msglen, "far", "%.15g must be greater than near %.15g",
+                       far_, near_);
+  const cJSON *data = cJSON_GetObjectItem(o, "data");
+  size_t len = strlen(data->valuestring), want = (size_t)w * (size_t)h * 4;
+  if (proto_b64_decoded_max(len) < want || proto_b64_decoded_max(len) > want + 3)
+    return depth_error(path, pathlen, msg, msglen, "data",
+                       "holds about %zu bytes, not width x height x 4 = %zu", len / 4 * 3, want);
+  unsigned char *raw = malloc(proto_b64_decoded_max(len));
+  if (raw == NULL)
+    return depth_error(path, pathlen, msg, msglen, "data", "is too large for memory");
+  long got = proto_b64_decode(data->valuestring, len, raw);
+  if (got != (long)want) {
+    free(raw);
+    return depth_error(path, pathlen, msg, msglen, "data",
+                       got < 0 ? "is not valid base64" : "holds %ld bytes, not width x height x 4",
+                       got);
+  }
+  int reversed = ndc && cJSON_IsTrue(cJSON_GetObjectItem(o, "reversed"));
+  char why[256];
+  j->depth = render_depth_make(raw, (uint32_t)w, (uint32_t)h, (render_depth_convention_t)conv,
+                               reversed, near_, far_, cam, why, sizeof why);
+  free(raw);
+  if (j->depth == NULL)
+    return depth_error(path, pathlen, msg, msglen, "data", "%s%s", why,
+                       reversed ? " (reversed)" : "");
+  j->params.depth = j->depth;
+  return 0;
+}
 const sch_field_t render_layer_item = {.type = SCH_ENUM,
                                        .desc = "objects, volumes, cloud, fluid or waves.",
                                        .enum_values = render_layer_names};
@@ -103,6 +233,17 @@ int render_job_from_params(server_t *s, scene_entry_t *e, const cJSON *params, j
     if (rc)
       return rc;
     j->has_camera = 1;
+  }
+  const cJSON *bg = cJSON_GetObjectItem(params, "background");
+  if (bg)
+    j->params.background =
+        strcmp(bg->valuestring, "transparent") == 0 ? RENDER_BG_TRANSPARENT : RENDER_BG_SCENE;
+  const cJSON *depth = cJSON_GetObjectItem(params, "depth");
+  if (depth) {
+    int rc = depth_from_param(depth, j, j->has_camera ? &j->camera : &e->scene->snapshot->camera,
+                              path, pathlen, msg, msglen);
+    if (rc)
+      return rc;
   }
   j->scene = render_scene_ref(e->scene->snapshot);
   j->frame = j->scene->frame;
@@ -209,7 +350,7 @@ static void render_m(call_t *call) {
   server_t *s = call->srv;
   if (output_total(s) > 0 && !output_total_fits(s, bound)) {
     /* The frame would pass the server's output budget: refused rather than held. */
-    render_scene_unref(rc->job.scene);
+    render_job_release(&rc->job);
     cJSON_Delete(rc->t);
     free(rc);
     call_error(call, PROTO_E_LIMIT, NULL,
@@ -219,7 +360,7 @@ static void render_m(call_t *call) {
     return;
   }
   if (worker_submit(call->srv->worker, &rc->job) != 0) {
-    render_scene_unref(rc->job.scene);
+    render_job_release(&rc->job);
     cJSON_Delete(rc->t);
     free(rc);
     call_error(call, PROTO_E_BUSY, NULL, "busy: the render queue is full (%d jobs); retry later",

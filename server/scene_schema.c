@@ -465,7 +465,8 @@ static const sch_field_t render_fields[] = {
      .offset = offsetof(render_scene_t, tone_map)},
     {.name = "transparent_background",
      .type = SCH_BOOL,
-     .desc = "Give background pixels alpha 0 instead of 1, for compositing.",
+     .desc = "Draw background pixels as transparent black (premultiplied alpha, for "
+             "compositing) unless a frame's 'background' param says otherwise.",
      .store = SCH_STORE_BOOL,
      .offset = offsetof(render_scene_t, transparent_background)},
     {.name = "volume_resolution",

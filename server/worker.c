@@ -36,6 +36,15 @@ static uint64_t mono_ns(void) {
   return uv_hrtime();
 }
 
+/* Drops what a job holds for its render: the scene reference and the client's depth buffer. */
+static void job_drop_inputs(job_t *j) {
+  render_scene_unref(j->scene);
+  j->scene = NULL;
+  render_depth_free(j->depth);
+  j->depth = NULL;
+  j->params.depth = NULL;
+}
+
 static void push(job_t **head, job_t **tail, job_t *j) {
   j->next = NULL;
   if (*tail)
@@ -64,8 +73,7 @@ static void worker_main(void *arg) {
     if (j->run) {
       j->run(w->renderer, j);
       j->t_done_ns = mono_ns();
-      render_scene_unref(j->scene);
-      j->scene = NULL;
+      job_drop_inputs(j);
       uv_mutex_lock(&w->mu);
       push(&w->done_head, &w->done_tail, j);
       uv_async_send(&w->async);
@@ -79,8 +87,7 @@ static void worker_main(void *arg) {
     j->params.raw = encode;
     j->code = renderer_render(w->renderer, j->scene, &j->params, &j->out, j->err, sizeof j->err);
     j->t_done_ns = mono_ns();
-    render_scene_unref(j->scene);
-    j->scene = NULL;
+    job_drop_inputs(j);
 
     uv_mutex_lock(&w->mu);
     if (encode) {
@@ -228,8 +235,7 @@ void worker_stop(worker_t *w) {
       cancelled->code = PROTO_E_BUSY;
       snprintf(cancelled->err, sizeof cancelled->err, "the server is shutting down");
     }
-    render_scene_unref(cancelled->scene);
-    cancelled->scene = NULL;
+    job_drop_inputs(cancelled);
     cancelled->done(cancelled);
     cancelled = next;
   }

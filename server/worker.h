@@ -21,7 +21,9 @@ struct job {
   render_params_t params;
   rcamera_t camera; /* Used when 'has_camera'; params.camera points here. */
   int has_camera;
-  uint64_t frame; /* The snapshot's simulation frame and time. */
+  render_depth_t *depth; /* The client's depth buffer, owned; params.depth points here. Freed
+                            with the scene reference (render_job_release, or the worker). */
+  uint64_t frame;        /* The snapshot's simulation frame and time. */
   double time;
   render_output_t out; /* Filled by the worker; out.bytes belongs to the 'done' callback. */
   int code;            /* 0 or a PROTO_E_* code. */

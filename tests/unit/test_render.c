@@ -752,8 +752,10 @@ static void test_layers_and_background(void) {
     int bad = 0, finite = 0;
     for (int i = 0; i < W * H; i++) {
       const float *p = img + 4 * i;
-      bad += p[0] != s.background[0] || p[1] != s.background[1] || p[2] != s.background[2] ||
-             p[3] != (transparent ? 0.0f : 1.0f);
+      /* A transparent background is transparent black (premultiplied). */
+      float k = transparent ? 0.0f : 1.0f;
+      bad += p[0] != k * s.background[0] || p[1] != k * s.background[1] ||
+             p[2] != k * s.background[2] || p[3] != k;
       finite += !(isinf(d[i]) && d[i] > 0);
     }
     CHECK(bad == 0, "%d pixels are not the background without the objects layer", bad);

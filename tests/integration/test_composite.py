@@ -1,0 +1,273 @@
+#!/usr/bin/env python3
+"""
+Compositing effect-only frames over a game's own picture (docs/protocol.md, "Compositing").
+
+The reference is volfxd's own render of a scene with an opaque box inside a noise volume. The
+game-like path renders the same scene's effects only (layers ["volumes"], background
+"transparent") with the box's depth buffer, computed here analytically for the same camera,
+and composites that premultiplied frame over the game's picture of the box and background
+(volfxd's objects-only render): game * (1 - a) + effect. In linear light (rgbaf32) this must
+reproduce the reference; in 8 bits (rgba8, tone map "none") blending in linear light after
+decoding the sRGB of both pictures must reproduce the 8-bit reference. The light comes from
+behind the camera, so that the box's shadow in the volume (which the effect-only frame, knowing
+no box, cannot have) lies behind the box, where the reference does not see it either. Pixels on
+the box's silhouette may differ: there the analytic depth (double) and the renderer's ray-box
+test (float) can disagree on whether a pixel's centre hits the box.
+
+Also: the depth conventions (linear, ray, ndc_gl, ndc_01, reversed) converted to distance along
+each ray, checked against a double-precision reference through the depth aov; and bad depth
+buffers refused with data.path.
+
+    python3 tests/integration/test_composite.py --bin build/bin
+"""
+
+import base64
+import math
+import os
+import struct
+import sys
+
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+import mock  # noqa: E402
+from mock import E_PARAMS, expect_error  # noqa: E402
+
+suite = mock.Suite("test_composite", timeout_s=400)
+suite.server_args = []
+T = suite.test
+
+W, H = 96, 64
+EYE, TARGET, UP, FOV = (0.3, 1.2, 5.0), (0.0, 0.5, 0.0), (0.0, 1.0, 0.0), 40.0
+NEAR, FAR = 0.1, 100.0
+BOX_POS, BOX_SCALE = (0.0, 0.5, 0.0), (1.0, 1.0, 1.0)
+
+
+def sub(a, b):
+    return [a[i] - b[i] for i in range(3)]
+
+
+def norm(a):
+    n = math.sqrt(sum(x * x for x in a))
+    return [x / n for x in a]
+
+
+def cross(a, b):
+    return [a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0]]
+
+
+def dot(a, b):
+    return sum(a[i] * b[i] for i in range(3))
+
+
+def rays():
+    """Each pixel's unit ray direction and its cosine to the view axis, in double."""
+    fw = norm(sub(TARGET, EYE))
+    rt = norm(cross(fw, UP))
+    up = cross(rt, fw)
+    th = math.tan(math.radians(FOV) / 2)
+    aspect = W / H
+    out = []
+    for y in range(H):
+        for x in range(W):
+            u = (2 * (x + 0.5) / W - 1) * th * aspect
+            v = (1 - 2 * (y + 0.5) / H) * th
+            d = norm([fw[i] + u * rt[i] + v * up[i] for i in range(3)])
+            out.append((d, dot(d, fw)))
+    return out
+
+
+def box_t(d):
+    """Distance along ray d from EYE to the box, or +inf (slab test in double)."""
+    tin, tout = -math.inf, math.inf
+    for i in range(3):
+        lo = BOX_POS[i] - BOX_SCALE[i] / 2
+        hi = BOX_POS[i] + BOX_SCALE[i] / 2
+        if d[i] == 0:
+            if not lo <= EYE[i] <= hi:
+                return math.inf
+            continue
+        a, b = (lo - EYE[i]) / d[i], (hi - EYE[i]) / d[i]
+        tin, tout = max(tin, min(a, b)), min(tout, max(a, b))
+    return tin if tin <= tout and tin > 0 else math.inf
+
+
+def depth_param(values, convention="linear", **kw):
+    data = base64.b64encode(struct.pack("<%df" % len(values), *values)).decode()
+    return dict({"width": W, "height": H, "data": data, "convention": convention}, **kw)
+
+
+def scene(c, name):
+    c.ok("scene.create", {"name": name})
+    toward_eye = norm(sub(EYE, TARGET))
+    c.ok("scene.set", {"scene": name, "patch": {
+        "camera": {"eye": list(EYE), "target": list(TARGET), "up": list(UP), "fov_y": FOV,
+                   "near": NEAR, "far": FAR},
+        "light": {"direction": toward_eye, "intensity": 0.8, "ambient": 0.2},
+        "background": [0.2, 0.3, 0.45],
+        "objects": [{"shape": "box", "position": list(BOX_POS), "scale": list(BOX_SCALE),
+                     "color": [0.8, 0.4, 0.2]}],
+        "waves": [],
+        "volumes": [{"id": "mist", "bounds": {"min": [-1.6, 0, -1.2], "max": [1.6, 1.6, 1.2]},
+                     "density": 1.2, "albedo": [0.9, 0.9, 0.95], "samples": 48}],
+        "render": {"tone_map": "none", "exposure": 0}}})
+
+
+def floats(att):
+    return struct.unpack("<%df" % (len(att) // 4), att)
+
+
+def srgb_decode(b):
+    x = b / 255
+    return x / 12.92 if x <= 0.04045 else ((x + 0.055) / 1.055) ** 2.4
+
+
+def srgb_encode(x):
+    x = min(max(x, 0.0), 1.0)
+    x = 12.92 * x if x <= 0.0031308 else 1.055 * x ** (1 / 2.4) - 0.055
+    return int(math.floor(x * 255 + 0.5))
+
+
+def silhouette(ts):
+    """Pixels next to a pixel whose box hit differs from theirs."""
+    edge = set()
+    for y in range(H):
+        for x in range(W):
+            hit = math.isfinite(ts[y * W + x])
+            for dx, dy in ((1, 0), (-1, 0), (0, 1), (0, -1)):
+                xx, yy = x + dx, y + dy
+                if 0 <= xx < W and 0 <= yy < H and math.isfinite(ts[yy * W + xx]) != hit:
+                    edge.add(y * W + x)
+    return edge
+
+
+@T
+def composite_matches_reference(s):
+    c = s.srv.connect()
+    scene(c, "g")
+    rs = rays()
+    ts = [box_t(d) for d, _ in rs]
+    s.check(sum(math.isfinite(t) for t in ts) > W * H // 20, "the box covers part of the frame")
+    z = [t * cosv if math.isfinite(t) else FAR for t, (_, cosv) in zip(ts, rs)]
+    base = {"scene": "g", "width": W, "height": H}
+    fx = dict(base, layers=["volumes"], background="transparent",
+              depth=depth_param(z, far=FAR))
+    edge = silhouette(ts)
+
+    # Linear light: rgbaf32 is the linear picture before exposure and tone map.
+    _, ref = c.ok("render", dict(base, format="rgbaf32"), timeout=120)
+    _, game = c.ok("render", dict(base, format="rgbaf32", layers=["objects"]), timeout=120)
+    r, eff = c.ok("render", dict(fx, format="rgbaf32"), timeout=120)
+    s.check("game_depth" in r.get("work_ms", {}), "the frame reports a game_depth pass",
+            str(r.get("work_ms")))
+    ref, game, eff = floats(ref), floats(game), floats(eff)
+    worst, total, n, covered = 0.0, 0.0, 0, 0
+    for i in range(W * H):
+        a = eff[4 * i + 3]
+        covered += a > 0.01
+        if i in edge:
+            continue
+        for k in range(3):
+            e = abs(game[4 * i + k] * (1 - a) + eff[4 * i + k] - ref[4 * i + k])
+            worst, total, n = max(worst, e), total + e, n + 1
+    s.check(covered > W * H // 4, "the volume covers much of the effect-only frame",
+            "%d pixels" % covered)
+    s.check(worst < 1e-5 and total / n < 1e-6,
+            "linear composite matches the reference: mean %.2g, max %.2g off %d silhouette "
+            "pixels" % (total / n, worst, len(edge)))
+    # Background pixels of the effect frame are transparent black; behind the box nothing.
+    far_px = [i for i in range(W * H) if eff[4 * i + 3] == 0]
+    s.check(far_px and all(eff[4 * i + k] == 0 for i in far_px for k in range(3)),
+            "uncovered pixels are transparent black")
+
+    # 8 bits with tone map none: blend in linear light after decoding sRGB.
+    _, ref8 = c.ok("render", dict(base, format="rgba8"), timeout=120)
+    _, game8 = c.ok("render", dict(base, format="rgba8", layers=["objects"]), timeout=120)
+    _, eff8 = c.ok("render", dict(fx, format="rgba8"), timeout=120)
+    worst, total, n = 0, 0, 0
+    for i in range(W * H):
+        if i in edge:
+            continue
+        a = eff8[4 * i + 3] / 255
+        for k in range(3):
+            lin = srgb_decode(game8[4 * i + k]) * (1 - a) + srgb_decode(eff8[4 * i + k])
+            e = abs(srgb_encode(lin) - ref8[4 * i + k])
+            worst, total, n = max(worst, e), total + e, n + 1
+    s.check(worst <= 2 and total / n < 0.25,
+            "8-bit composite matches the reference: mean %.3f, max %d levels" % (total / n, worst))
+    # PNG carries the same premultiplied pixels.
+    _, png = c.ok("render", dict(fx, format="png"), timeout=120)
+    s.check(png[:8] == b"\x89PNG\r\n\x1a\n", "the effect-only frame is a PNG too")
+
+
+def ray_ref(conv, t, cosv, **kw):
+    """The value a client of 'conv' sends for ray distance t, in double."""
+    if not math.isfinite(t):
+        return {"linear": FAR, "ray": FAR, "ndc_gl": 1.0, "ndc_01": 1.0}[conv] \
+            if not kw.get("reversed") else {"ndc_gl": -1.0, "ndc_01": 0.0}[conv]
+    zv = t * cosv
+    if conv == "linear":
+        return zv
+    if conv == "ray":
+        return t
+    d01 = FAR * (zv - NEAR) / (zv * (FAR - NEAR))
+    if kw.get("reversed"):
+        d01 = 1 - d01
+        return d01 if conv == "ndc_01" else -(2 * (1 - d01) - 1)
+    return d01 if conv == "ndc_01" else 2 * d01 - 1
+
+
+@T
+def depth_conventions(s):
+    c = s.srv.connect()
+    scene(c, "d")
+    rs = rays()
+    ts = [box_t(d) for d, _ in rs]
+    cases = [("linear", {"far": FAR}, 2e-6), ("ray", {"far": FAR}, 2e-6),
+             ("ndc_gl", {"near": NEAR, "far": FAR}, 2e-5),
+             ("ndc_01", {"near": NEAR, "far": FAR}, 2e-5),
+             ("ndc_01", {"near": NEAR, "far": FAR, "reversed": True}, 2e-5),
+             ("ndc_gl", {"near": NEAR, "far": FAR, "reversed": True}, 2e-5)]
+    for conv, kw, tol in cases:
+        vals = [ray_ref(conv, t, cosv, **kw) for t, (_, cosv) in zip(ts, rs)]
+        p = {"scene": "d", "width": W, "height": H, "format": "f32", "aov": "depth",
+             "layers": [], "depth": depth_param(vals, conv, **kw)}
+        _, att = c.ok("render", p, timeout=120)
+        got = floats(att)
+        worst, wrong_inf = 0.0, 0
+        for t, g in zip(ts, got):
+            if math.isfinite(t):
+                worst = max(worst, abs(g - t) / t)
+            else:
+                wrong_inf += math.isfinite(g)
+        s.check(worst < tol and wrong_inf == 0,
+                "%s %s: ray distances within %.1g relative (worst %.2g), %d misses not +inf" %
+                (conv, kw, tol, worst, wrong_inf))
+
+
+@T
+def bad_depth(s):
+    c = s.srv.connect()
+    scene(c, "b")
+    base = {"scene": "b", "width": W, "height": H, "format": "rgba8"}
+    good = [1.0] * (W * H)
+    expect_error(s, c, "render", dict(base, depth=dict(depth_param(good), width=W + 1)), E_PARAMS,
+                 path="depth.width")
+    expect_error(s, c, "render", dict(base, depth=dict(depth_param(good), height=1)), E_PARAMS,
+                 path="depth.height")
+    short = dict(depth_param(good), data=depth_param(good[:-1])["data"])
+    expect_error(s, c, "render", dict(base, depth=short), E_PARAMS, path="depth.data")
+    for bad in (float("nan"), float("inf"), -1.0):
+        vals = list(good)
+        vals[7] = bad
+        expect_error(s, c, "render", dict(base, depth=depth_param(vals)), E_PARAMS,
+                     path="depth.data")
+    expect_error(s, c, "render", dict(base, depth=depth_param([0.5] * (W * H), "ndc_01", far=FAR)),
+                 E_PARAMS, path="depth.near")
+    expect_error(s, c, "render", dict(base, depth=depth_param([1.5] * (W * H), "ndc_01", near=NEAR,
+                                                           far=FAR)), E_PARAMS, path="depth.data")
+    expect_error(s, c, "render", dict(base, background="clear"), E_PARAMS, path="background")
+    expect_error(s, c, "frames.subscribe", dict(base, fps=5, depth=dict(depth_param(good), width=3)),
+                 E_PARAMS, path="depth.width")
+
+
+if __name__ == "__main__":
+    sys.exit(suite.main())
