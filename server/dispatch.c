@@ -118,7 +118,7 @@ static void call_finish(call_t *call, cJSON *response, unsigned char *att, size_
 
 void call_result(call_t *call, cJSON *result) {
   if (call->method && (call->method->flags & METHOD_SCENE_TAG))
-    frames_scene_tagged(call);
+    frames_scene_changed(call);
   call_finish(call, proto_make_result(call->id, result), NULL, 0);
 }
 

@@ -12,7 +12,8 @@
 enum {
   METHOD_NO_AUTH = 1 << 0,  /* Callable before 'auth' succeeds. */
   METHOD_SCENE_TAG = 1 << 1 /* Its 'tag' param (PARAM_TAG) is recorded on its scene when the call
-                               succeeds, and echoed by the frames that show it (frames.c). */
+                               succeeds, and echoed by the frames that show it; the scene's
+                               idle subscriptions tick at once (frames.c). */
 };
 
 struct method {

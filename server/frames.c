@@ -82,6 +82,7 @@ struct sub {
   size_t wait_len;
   unsigned char *wait_att;
   size_t wait_att_len;
+  uint64_t frame_ns; /* now_ns() when its newest frame was taken (sub_show). */
   uint64_t sent, dropped;
 };
 
@@ -272,18 +273,6 @@ void frames_scene_deleted(server_t *s, const char *scene) {
   }
 }
 
-void frames_scene_tagged(call_t *call) {
-  const cJSON *tag = cJSON_GetObjectItem(call->params, "tag");
-  const cJSON *scene = cJSON_GetObjectItem(call->params, "scene");
-  scene_entry_t *e = tag && scene ? server_find_scene(call->srv, scene->valuestring) : NULL;
-  cJSON *copy = e ? cJSON_Duplicate(tag, 1) : NULL;
-  if (!copy)
-    return;
-  cJSON_Delete(e->tag);
-  e->tag = copy;
-  e->tag_seq = ++tag_counter;
-}
-
 /* Puts the frame 'line' (with attachment 'att', both taken) in the subscription's waiting
  * slot, replacing an older one, and writes it at once when the socket is idle. */
 static void frame_offer(sub_t *sub, char *line, size_t len, unsigned char *att, size_t att_len) {
@@ -460,6 +449,7 @@ static void shot_discard(shot_t *sh) {
 /* 'sub' shows 'sh' from now on. */
 static void sub_show(sub_t *sub, shot_t *sh, const shown_t *now) {
   sub->shown = *now;
+  sub->frame_ns = now_ns();
   sh->refs++;
   shot_unref(sub->last);
   sub->last = sh;
@@ -523,6 +513,33 @@ static void on_tick(uv_timer_t *t) {
   sub->in_flight++;
   sub->refs++;
   sub_show(sub, sh, &now);
+}
+
+void frames_scene_changed(call_t *call) {
+  const cJSON *scene = cJSON_GetObjectItem(call->params, "scene");
+  server_t *s = call->srv;
+  scene_entry_t *e = scene ? server_find_scene(s, scene->valuestring) : NULL;
+  if (!e)
+    return;
+  const cJSON *tag = cJSON_GetObjectItem(call->params, "tag");
+  cJSON *copy = tag ? cJSON_Duplicate(tag, 1) : NULL;
+  if (copy) {
+    cJSON_Delete(e->tag);
+    e->tag = copy;
+    e->tag_seq = ++tag_counter;
+  }
+  /* A subscription whose newest frame is an interval old or more ticks now rather than up to
+   * an interval later, and keeps that phase: the change shows as soon as it can, and frames
+   * stay an interval apart. */
+  uint64_t now = now_ns();
+  for (conn_t *c = s->conns; c; c = c->next)
+    for (sub_t *sub = c->subs; sub; sub = sub->next) {
+      uint64_t ms = interval_ms(sub->params);
+      if (strcmp(sub->scene, e->scene->name) != 0 || now - sub->frame_ns < ms * 1000000ull)
+        continue;
+      uv_timer_start(&sub->timer, on_tick, ms, ms);
+      on_tick(&sub->timer);
+    }
 }
 
 /* The subscription 'id' names among the connection's; answers -32004 and returns NULL when

@@ -43,8 +43,9 @@ void render_job_sync(cJSON *o, const job_t *j);
 double render_clock_ms(uint64_t mono_ns);
 
 /* A call of a METHOD_SCENE_TAG method succeeded: its 'tag' param, if any, becomes its scene's
- * newest tag, echoed by the frames that show the scene from now on. */
-void frames_scene_tagged(call_t *call);
+ * newest tag, echoed by the frames that show the scene from now on, and the scene's
+ * subscriptions that last ticked an interval ago or more tick at once. */
+void frames_scene_changed(call_t *call);
 
 /* The params that describe one frame, shared by render, frames.subscribe and render.sequence. */
 #define RENDER_PARAMS_FRAME                                                                        \

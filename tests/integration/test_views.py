@@ -4,7 +4,8 @@ A view per subscription, checked over a real socket: frames.update changes a sub
 camera and size live (no frames.ended, no resubscribe, the stream goes on) and a bad update
 leaves it as it was; identical subscriptions share one render per frame while different
 cameras render apart; a paused, unchanged scene sends nothing, and a tagged scene.set makes
-one frame arrive with the tag, the new version and server timestamps in order.
+one frame arrive with the tag, the new version and server timestamps in order, at once when
+the subscription was idle.
 
     python3 tests/integration/test_views.py --bin build/bin
 """
@@ -203,6 +204,31 @@ def unchanged_scene_sends_nothing(s):
             r["render_start"] <= r["encode_end"] <= now + 1, "render answers carry version and "
             "timestamps", short(r))
     c.ok("frames.unsubscribe", {"id": sid})
+    c.close()
+
+
+@T
+def change_ticks_idle_subscription_at_once(s):
+    c = s.srv.connect()
+    new_scene(c, "slow")
+    # At 1 fps a change would wait up to a second for the next tick; an idle subscription ticks
+    # as the change is answered instead.
+    c.ok("frames.subscribe", {"scene": "slow", "width": W, "height": H, "fps": 1})
+    s.check(len(frames_of(c, 20, want=1)) == 1, "a first frame arrives")
+    time.sleep(1.2)
+    t0 = time.monotonic()
+    c.ok("scene.set", {"scene": "slow", "path": "camera.fov_y", "value": 33, "tag": "now"})
+    got = frames_of(c, 5, want=1)
+    el = time.monotonic() - t0
+    s.check(got and got[0].get("tag") == "now" and el < 0.6,
+            "the change arrives at once, not at the next tick", "%.3f s %s" % (el, short(got)))
+    # The next change within the interval waits for the tick: frames stay an interval apart.
+    t0 = time.monotonic()
+    c.ok("scene.set", {"scene": "slow", "path": "camera.fov_y", "value": 34, "tag": "later"})
+    got = frames_of(c, 5, want=1)
+    el = time.monotonic() - t0
+    s.check(got and got[0].get("tag") == "later" and el > 0.5,
+            "a change within the interval waits for the tick", "%.3f s %s" % (el, short(got)))
     c.close()
 
 
