@@ -24,7 +24,7 @@
 
 /* What a frame depends on: the scene's snapshot and newest tag, and the subscription's view. */
 typedef struct shown {
-  int valid;
+  uint64_t valid; /* All members 64 bits wide: no padding, so memcmp compares them all. */
   uint64_t scene_id, changes, tag_seq, view_gen;
 } shown_t;
 
