@@ -10,6 +10,7 @@
 #include <string.h>
 
 #include "defer.h"
+#include "frames.h"
 #include "dispatch.h"
 #include "log.h"
 
@@ -116,6 +117,8 @@ static void call_finish(call_t *call, cJSON *response, unsigned char *att, size_
 }
 
 void call_result(call_t *call, cJSON *result) {
+  if (call->method && (call->method->flags & METHOD_SCENE_TAG))
+    frames_scene_changed(call);
   call_finish(call, proto_make_result(call->id, result), NULL, 0);
 }
 

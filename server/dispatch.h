@@ -10,7 +10,10 @@
 #include "server.h"
 
 enum {
-  METHOD_NO_AUTH = 1 << 0 /* Callable before 'auth' succeeds. */
+  METHOD_NO_AUTH = 1 << 0,  /* Callable before 'auth' succeeds. */
+  METHOD_SCENE_TAG = 1 << 1 /* Its 'tag' param (PARAM_TAG) is recorded on its scene when the call
+                               succeeds, and echoed by the frames that show it; the scene's
+                               idle subscriptions tick at once (frames.c). */
 };
 
 struct method {
@@ -28,6 +31,15 @@ struct method {
   {                                                                                                \
     .name = "scene", .type = SCH_STRING, .desc = "Name of the scene.", .max = 63,                  \
     .def_str = "main"                                                                              \
+  }
+
+/* The 'tag' param of the calls that change what a scene's frames show. */
+#define PARAM_TAG                                                                                  \
+  {                                                                                                \
+    .name = "tag", .type = SCH_ANY,                                                                \
+    .desc = "Any JSON value of at most 256 bytes, echoed as 'tag' by the first frames that show "  \
+            "this change.",                                                                        \
+    .max = 256, .flags = SCH_NO_DEFAULT                                                            \
   }
 
 /* A method's params: the OBJECT whose members are the fields 'f' (ended by {0}). */

@@ -35,6 +35,17 @@ size_t render_answer_bound(const job_t *j, int base64);
 void render_job_stats(server_t *s, const job_t *j);
 /* The work_ms object of a finished job: each pass, "queue" and "total". */
 cJSON *render_job_times(const job_t *j);
+/* Adds a finished job's sync members to 'o': "version" (the scene's), "render_start" and
+ * "encode_end" (render_clock_ms of when the worker took the job and when its bytes were done). */
+void render_job_sync(cJSON *o, const job_t *j);
+/* A now_ns() time as milliseconds of CLOCK_REALTIME since the Unix epoch, to 0.1 ms, so that a
+ * client on the same host can set it beside its own clock. */
+double render_clock_ms(uint64_t mono_ns);
+
+/* A call of a METHOD_SCENE_TAG method succeeded: its 'tag' param, if any, becomes its scene's
+ * newest tag, echoed by the frames that show the scene from now on, and the scene's
+ * subscriptions that last ticked an interval ago or more tick at once. */
+void frames_scene_changed(call_t *call);
 
 /* The params that describe one frame, shared by render, frames.subscribe and render.sequence. */
 #define RENDER_PARAMS_FRAME                                                                        \

@@ -8,6 +8,7 @@
 #include <stdio.h>
 #include <stdlib.h>
 #include <string.h>
+#include <time.h>
 
 #include "dispatch.h"
 #include "frames.h"
@@ -248,6 +249,7 @@ int render_job_from_params(server_t *s, scene_entry_t *e, const cJSON *params, j
   j->scene = render_scene_ref(e->scene->snapshot);
   j->frame = j->scene->frame;
   j->time = j->scene->time;
+  j->version = e->scene->version;
   return 0;
 }
 
@@ -267,6 +269,21 @@ cJSON *render_job_times(const job_t *j) {
   cJSON_AddNumberToObject(t, "queue", (double)(j->t_started_ns - j->t_queued_ns) / 1e6);
   cJSON_AddNumberToObject(t, "total", j->out.total_ms);
   return t;
+}
+
+double render_clock_ms(uint64_t mono_ns) {
+  struct timespec ts;
+  clock_gettime(CLOCK_REALTIME, &ts);
+  uint64_t now = now_ns();
+  double ago_ms = now >= mono_ns ? (double)(now - mono_ns) / 1e6 : -(double)(mono_ns - now) / 1e6;
+  double ms = (double)ts.tv_sec * 1e3 + (double)ts.tv_nsec / 1e6 - ago_ms;
+  return round(ms * 10.0) / 10.0;
+}
+
+void render_job_sync(cJSON *o, const job_t *j) {
+  cJSON_AddNumberToObject(o, "version", (double)j->version);
+  cJSON_AddNumberToObject(o, "render_start", render_clock_ms(j->t_started_ns));
+  cJSON_AddNumberToObject(o, "encode_end", render_clock_ms(j->t_done_ns));
 }
 
 /* Per-request state of a render call while its job runs. */
@@ -302,6 +319,7 @@ static void on_render_done(job_t *j) {
     cJSON_AddStringToObject(r, "aov", render_aov_names[j->params.aov]);
     cJSON_AddNumberToObject(r, "frame", (double)j->frame);
     cJSON_AddNumberToObject(r, "time", j->time);
+    render_job_sync(r, j);
     cJSON_AddItemToObject(r, "work_ms", render_job_times(j));
     cJSON_AddNumberToObject(r, "antialias", j->out.antialias);
     if (rc->t) {
@@ -386,7 +404,8 @@ const method_t method_render = {
     .name = "render",
     .summary = "Renders one frame, returned as an attachment with per-pass timings.",
     .params = &(sch_field_t){.type = SCH_OBJECT, .fields = render_params},
-    .result = "{width, height, format, aov, frame, time, work_ms {pass: ms, queue, total}, "
+    .result = "{width, height, format, aov, frame, time, version, render_start, encode_end, "
+              "work_ms {pass: ms, queue, total}, "
               "antialias, t, attachment {bytes, format, width, height}}",
     .errors = render_errors,
     .handler = render_m};

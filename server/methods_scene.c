@@ -358,6 +358,7 @@ static const sch_field_t set_params[] = {
      .type = SCH_ANY,
      .desc = "The value to set at 'path'.",
      .flags = SCH_NO_DEFAULT},
+    PARAM_TAG,
     {0}};
 static const sch_field_t step_params[] = {PARAM_SCENE,
                                           {.name = "steps",
@@ -373,6 +374,7 @@ static const sch_field_t step_params[] = {PARAM_SCENE,
                                            .min = 0,
                                            .max = 1,
                                            .flags = SCH_POSITIVE | SCH_NO_DEFAULT},
+                                          PARAM_TAG,
                                           {0}};
 static const sch_field_t play_params[] = {PARAM_SCENE,
                                           {.name = "rate",
@@ -383,8 +385,9 @@ static const sch_field_t play_params[] = {PARAM_SCENE,
                                            .max = 1000,
                                            .def = 60,
                                            .flags = SCH_POSITIVE},
+                                          PARAM_TAG,
                                           {0}};
-static const sch_field_t pause_params[] = {PARAM_SCENE, {0}};
+static const sch_field_t pause_params[] = {PARAM_SCENE, PARAM_TAG, {0}};
 
 /* sim.play's rate when left out: the default of its param above. */
 static double play_rate_default(void) {
@@ -432,7 +435,8 @@ const method_t method_scene_set = {
     .params = METHOD_PARAMS(set_params),
     .result = "{version}",
     .errors = set_errors,
-    .handler = scene_set_m};
+    .handler = scene_set_m,
+    .flags = METHOD_SCENE_TAG};
 const method_t method_sim_step = {.name = "sim.step",
                                   .summary = "Advances the scene's simulations by 'steps' steps, "
                                              "in slices that other scenes' renders run between.",
@@ -440,17 +444,20 @@ const method_t method_sim_step = {.name = "sim.step",
                                   .result = "{time, frame, cut_short?}: the clock where the "
                                             "stepping ended, and why when it ended early",
                                   .errors = step_errors,
-                                  .handler = sim_step};
+                                  .handler = sim_step,
+                                  .flags = METHOD_SCENE_TAG};
 const method_t method_sim_play = {
     .name = "sim.play",
     .summary = "Runs the simulation freely inside the server at 'rate' steps per second.",
     .params = METHOD_PARAMS(play_params),
     .result = "{playing, rate, time, frame}",
     .errors = scene_errors,
-    .handler = sim_play};
+    .handler = sim_play,
+    .flags = METHOD_SCENE_TAG};
 const method_t method_sim_pause = {.name = "sim.pause",
                                    .summary = "Stops the free-running simulation.",
                                    .params = METHOD_PARAMS(pause_params),
                                    .result = "{playing, time, frame}",
                                    .errors = scene_errors,
-                                   .handler = sim_pause};
+                                   .handler = sim_pause,
+                                   .flags = METHOD_SCENE_TAG};

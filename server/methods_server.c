@@ -74,6 +74,7 @@ static void stats(call_t *call) {
   cJSON_AddNumberToObject(r, "requests", (double)s->stats.requests);
   cJSON_AddNumberToObject(r, "errors", (double)s->stats.errors);
   cJSON_AddNumberToObject(r, "frames_rendered", (double)s->stats.frames);
+  cJSON_AddNumberToObject(r, "frames_shared", (double)s->stats.frames_shared);
   cJSON_AddNumberToObject(r, "fps", stats_fps(&s->stats, now));
   cJSON_AddNumberToObject(r, "render_queue", worker_queue_depth(s->worker));
   cJSON_AddNumberToObject(r, "subscriptions", s->nsubs);
@@ -138,7 +139,8 @@ const method_t method_stats = {
     .name = "stats",
     .summary = "Per-pass render times, frame rate, queue depths, connections and memory.",
     .params = &(sch_field_t){.type = SCH_OBJECT, .fields = no_params},
-    .result = "{uptime_s, connections, requests, errors, frames_rendered, fps, render_queue, "
+    .result = "{uptime_s, connections, requests, errors, frames_rendered, frames_shared, fps, "
+              "render_queue, "
               "subscriptions, passes, memory {rss_bytes, output_queued_bytes, kept_bytes}}",
     .errors = common_errors,
     .handler = stats};

@@ -153,6 +153,7 @@ int scene_commit(scene_t *s, cJSON *doc, const scene_saved_t *saved, scene_error
   s->doc = doc;
   render_scene_unref(s->snapshot);
   s->snapshot = rs;
+  s->changes++;
   s->version++;
   if (reseed) {
     particles_unref(s->particles);
@@ -296,6 +297,7 @@ void scene_advance(scene_t *s, uint64_t steps, double dt) {
   if (rs) {
     render_scene_unref(s->snapshot);
     s->snapshot = rs;
+    s->changes++;
   }
 }
 
@@ -312,6 +314,7 @@ int scene_set_particles(scene_t *s, particles_t *p) {
                        (p ? (double)p->count : 0));
   render_scene_unref(s->snapshot);
   s->snapshot = rs;
+  s->changes++;
   scene_budget_account(s, p ? p->count : 0);
   return 0;
 }
@@ -336,6 +339,7 @@ int scene_set_cloud(scene_t *s, cloud_cells_t *cells, density_grid_t *density, i
   }
   render_scene_unref(s->snapshot);
   s->snapshot = rs;
+  s->changes++;
   return 0;
 }
 

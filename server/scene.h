@@ -42,7 +42,9 @@ typedef struct scene {
   cJSON *doc;  /* The validated document, defaults filled in. */
   render_scene_t *snapshot; /* Compiled from 'doc'; replaced on every change. */
   unsigned long version;    /* Incremented on every change. */
-  particles_t *particles;   /* The fluid's particles (a reference), NULL for none. */
+  uint64_t changes;       /* Counts replacements of 'snapshot': anything that changes what is drawn
+                             (edits, steps, the fluid's and the cloud's results). */
+  particles_t *particles; /* The fluid's particles (a reference), NULL for none. */
   uint64_t particles_epoch; /* From 1; counts replacements of the particles from outside the
                                simulation (fluid.initial, fluid.set_particles): a fluid step
                                started in an earlier epoch is dropped. */

@@ -327,6 +327,21 @@ static int validate_array(const sch_field_t *f, cJSON *v, const char *path, sch_
   return 0;
 }
 
+/* Any value, of at most f->max bytes printed compactly when 'max' is set. */
+static int validate_any(const sch_field_t *f, const cJSON *v, const char *path, sch_error_t *err) {
+  if (!(f->max > 0))
+    return 0;
+  char *text = cJSON_PrintUnformatted(v);
+  if (!text)
+    return sch_error_set(err, path, "out of memory");
+  size_t n = strlen(text);
+  free(text);
+  if ((double)n > f->max)
+    return sch_error_set(err, path, "value of %zu bytes of JSON is longer than the limit of %.0f",
+                         n, f->max);
+  return 0;
+}
+
 static int validate(const sch_field_t *f, cJSON *v, const char *path, sch_error_t *err) {
   switch (f->type) {
   case SCH_NUMBER:
@@ -368,7 +383,7 @@ static int validate(const sch_field_t *f, cJSON *v, const char *path, sch_error_
   case SCH_ARRAY:
     return validate_array(f, v, path, err);
   case SCH_ANY:
-    return 0;
+    return validate_any(f, v, path, err);
   }
   return sch_error_set(err, path, "has an unknown schema type");
 }

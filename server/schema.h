@@ -20,7 +20,8 @@ typedef enum {
   SCH_VEC3,   /* Array of three finite numbers, each within [min, max]. */
   SCH_OBJECT, /* Object with the members in 'fields'; unknown members are refused. */
   SCH_ARRAY,  /* Array of at most 'max' items, each described by 'items'. */
-  SCH_ANY     /* Any JSON value; the handler checks it. */
+  SCH_ANY     /* Any JSON value of at most 'max' bytes printed compactly (0: no limit); the
+                 handler checks the rest. */
 } sch_type_t;
 
 enum {

@@ -155,6 +155,7 @@ scene_entry_t *server_add_scene(server_t *s, const char *name, const char *prese
 static void on_play_closed(uv_handle_t *h) {
   scene_entry_t *e = h->data;
   scene_destroy(e->scene);
+  cJSON_Delete(e->tag);
   free(e);
 }
 

@@ -153,6 +153,8 @@ typedef struct scene_entry {
   struct fluid_host *fluid; /* The fluid's simulation state (step_fluid.c); NULL for none. */
   uint64_t cloud_owed;      /* Steps the clock took that no cloud job has (step_cloud.c). */
   uint64_t cloud_owed_gen;  /* The scene's cloud_gen 'cloud_owed' belongs to. */
+  cJSON *tag;       /* The newest 'tag' of a call that changed the scene (frames.c), or NULL. */
+  uint64_t tag_seq; /* Its number in the order of every tag given (0: none yet). */
 } scene_entry_t;
 
 struct server {

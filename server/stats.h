@@ -15,6 +15,7 @@
 typedef struct stats {
   uint64_t started_ns;
   uint64_t requests, errors, frames;
+  uint64_t frames_shared; /* Subscription frames given from a render made for another one. */
   uint64_t connections_total;
   struct {
     const char *name;

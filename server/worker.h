@@ -25,8 +25,9 @@ struct job {
                             with the scene reference (render_job_release, or the worker). */
   uint64_t frame;        /* The snapshot's simulation frame and time. */
   double time;
-  render_output_t out; /* Filled by the worker; out.bytes belongs to the 'done' callback. */
-  int code;            /* 0 or a PROTO_E_* code. */
+  unsigned long version; /* The scene's version at the snapshot. */
+  render_output_t out;   /* Filled by the worker; out.bytes belongs to the 'done' callback. */
+  int code;              /* 0 or a PROTO_E_* code. */
   char err[512];
   uint64_t t_queued_ns, t_started_ns, t_done_ns;
   /*

@@ -94,7 +94,7 @@ def one_run(srv, side, frames, seconds):
     res["lock"], res["lock_cpu"], _ = timed(pid, frames, lock)
     # The stream: the server steps and renders by itself.
     sub, _ = c.ok("frames.subscribe", {"scene": s, "width": SIZE, "height": SIZE,
-                                        "format": "png", "fps": 240})
+                                        "format": "png", "fps": 240, "repeat": True})
     f0 = c.ok("scene.get", {"scene": s, "path": "sim.frame"})[0]
     c.ok("sim.play", {"scene": s, "rate": 60})
     start = {}

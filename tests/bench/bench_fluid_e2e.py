@@ -79,7 +79,7 @@ def stream(srv, preset, size, seconds):
     c = srv.connect(timeout=300, rcvbuf=8 << 20)
     s = fresh(c, preset)
     sub, _ = c.ok("frames.subscribe", {"scene": s, "width": size, "height": size,
-                                        "format": "png", "fps": 240})
+                                        "format": "png", "fps": 240, "repeat": True})
     c.ok("sim.play", {"scene": s, "rate": 60})
     frames, dt = streaming.receive_frames(c, seconds, timeout=300)
     c.send(c.request("sim.pause", {"scene": s}))

@@ -13,6 +13,8 @@ a = 60, b = 30) holding N waves spread across the view, objects off; --preset us
 it is. --png-level asks for that zlib level (the server's default, -1, is level 1 without
 filtering; 0 stores the rows uncompressed). The median server time per frame is split into the
 render (every pass but encoding) and the PNG encoding, which runs on its own thread.
+The subscription asks for `repeat`, so the unchanged scene is rendered again at every tick
+(a paused scene otherwise sends its first frame only).
 """
 
 import argparse
@@ -42,7 +44,7 @@ def thesis_waves(n):
 def one_run(srv, args):
     c = srv.connect(timeout=60, rcvbuf=8 << 20)
     params = {"width": args.size, "height": args.size, "format": "png", "fps": 240,
-              "png_level": args.png_level}
+              "png_level": args.png_level, "repeat": True}
     if args.waves:
         params["layers"] = ["waves"]
     sub, _ = c.ok("frames.subscribe", params)

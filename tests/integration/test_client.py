@@ -167,8 +167,11 @@ def test_cli(cli, work):
     size = os.path.getsize(os.path.join(work, "d.f32"))
     check(size == 4 * 32 * 16, "depth f32 is %d bytes, not %d" % (size, 4 * 32 * 16))
 
+    # A paused, unchanged scene sends one frame only; playing, every tick has a new one.
+    cli.run("play")
     _, out, _ = cli.run("watch", "--count", "3", "--fps", "20", "-W", "32", "-H", "32",
                         "-o", "w_%06d.png", "--seq")
+    cli.run("pause")
     m = re.search(r"received (\d+) frames, dropped (\d+)", out)
     check(m is not None and m.group(1) == "3", "watch summary: %r" % out)
     frames = sorted(f for f in os.listdir(work) if re.match(r"w_\d{6}\.png$", f))
@@ -221,7 +224,8 @@ def test_python(port):
         _, data = c.render(8, 8, encoding="base64")
         check(png_size(data) == (8, 8), "python base64 render is not an 8x8 PNG")
 
-        sid = c.subscribe(width=16, height=16, fps=20)
+        # 'repeat': a frame at every tick of the paused, unchanged scene.
+        sid = c.subscribe(width=16, height=16, fps=20, repeat=True)
         got = list(c.frames(count=3, timeout=30))
         check(len(got) == 3, "python received %d frames, not 3" % len(got))
         for params, data in got:

@@ -761,6 +761,8 @@ def _notif_checks(s, msg, att, sid, w, h, fmt):
 def frames_subscribe(s):
     c = s.srv.connect()
     c.ok("scene.create", {"name": "fs", "preset": "demo"})
+    # Playing, so that every tick has a new frame to show (a paused, unchanged scene sends one).
+    c.ok("sim.play", {"scene": "fs", "rate": 60})
     r, _ = c.ok("frames.subscribe", {"scene": "fs", "width": 32, "height": 24, "fps": 30})
     sid = r.get("id")
     s.check(isinstance(sid, int), "frames.subscribe returns an integer id", short(r))
@@ -776,7 +778,6 @@ def frames_subscribe(s):
     s.check(len(got) == 5, "5 frames notifications arrive", "%d in %.1f s" % (len(got), el))
     s.check(el >= 4 / 30 * 0.8, "frames arrive at no more than fps", "%d in %.3f s" % (len(got), el))
     # Playing the scene makes the frame number advance between notifications.
-    c.ok("sim.play", {"scene": "fs", "rate": 60})
     f0 = got[-1].get("frame", 0) if got else 0
     adv = False
     t0 = time.monotonic()
@@ -1062,7 +1063,8 @@ def idle_timeout(s):
                 "%.2f s" % (time.monotonic() - t0))
         # A connection with a subscription is not closed while idle.
         c2 = srv.connect()
-        c2.ok("frames.subscribe", {"width": 8, "height": 8, "fps": 10})
+        # 'repeat': a frame at every tick, though the paused scene does not change.
+        c2.ok("frames.subscribe", {"width": 8, "height": 8, "fps": 10, "repeat": True})
         t0 = time.monotonic()
         n = 0
         try:
