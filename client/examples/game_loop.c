@@ -80,33 +80,19 @@ static cJSON *view_new(double angle, int with_size) {
   return view;
 }
 
-/*
- * Moves subscription '*id' to the camera at 'angle' with frames.update. A server that does not
- * have frames.update yet (-32601) gets the fallback: unsubscribe, then subscribe again with the
- * new camera, which costs a gap in the stream; '*fallback' counts those.
- */
-static int camera_move(volfx_conn_t *conn, int64_t *id, double angle, int *fallback,
-                       volfx_error_t *err) {
-  int rc = volfx_frames_update(conn, *id, view_new(angle, 0), err);
-  if (rc != -32601) {
-    return rc;
-  }
-  (*fallback)++;
-  rc = volfx_unsubscribe(conn, *id, NULL, err);
-  return rc != 0 ? rc : volfx_subscribe(conn, view_new(angle, 1), id, err);
-}
-
 /* The loop itself: frames for 'o->seconds', a camera move every 'o->every' frames. */
 static int game_run(volfx_conn_t *conn, const options_t *o) {
   volfx_error_t err = {0};
   int64_t id = 0;
-  int rc = volfx_subscribe(conn, view_new(0, 1), &id, &err);
+  /* The effects move while the game runs; a paused, unchanged scene sends no new frames. */
+  int rc = volfx_sim_play(conn, NULL, 60, &err);
+  if (rc == 0)
+    rc = volfx_subscribe(conn, view_new(0, 1), &id, &err);
   if (rc != 0) {
-    fprintf(stderr, "game_loop: frames.subscribe: %s\n", err.message);
+    fprintf(stderr, "game_loop: starting: %s\n", err.message);
     return 1;
   }
   long frames = 0, moves = 0;
-  int fallback = 0;
   size_t bytes = 0;
   double start = now_s();
   while (now_s() - start < o->seconds) {
@@ -126,7 +112,8 @@ static int game_run(volfx_conn_t *conn, const options_t *o) {
     volfx_attachment_free(&att);
     if (frames % o->every == 0) {
       moves++;
-      rc = camera_move(conn, &id, 0.1 * (double)moves, &fallback, &err);
+      /* The new view applies from the next frame, on the same subscription, with no gap. */
+      rc = volfx_frames_update(conn, id, view_new(0.1 * (double)moves, 0), &err);
       if (rc != 0) {
         fprintf(stderr, "game_loop: moving the camera: %s\n", err.message);
         return 1;
@@ -137,10 +124,9 @@ static int game_run(volfx_conn_t *conn, const options_t *o) {
   cJSON *done = NULL;
   volfx_unsubscribe(conn, id, &done, NULL);
   cJSON_Delete(done);
-  printf("game_loop: %ld frames in %.2f s: %.1f fps, %zu bytes, %ld camera moves%s, %llu "
+  printf("game_loop: %ld frames in %.2f s: %.1f fps, %zu bytes, %ld camera moves, %llu "
          "frames replaced while the game was away\n",
          frames, elapsed, frames / elapsed, bytes, moves,
-         fallback > 0 ? " (by resubscribing: the server has no frames.update)" : "",
          (unsigned long long)volfx_frames_replaced(conn));
   return frames > 0 ? 0 : 1;
 }
