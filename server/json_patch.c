@@ -101,6 +101,16 @@ static cJSON *spot_value(cJSON *doc, const spot_t *s) {
   return s->parent ? token_child(s->parent, s->token) : doc;
 }
 
+/* Drops the member name a copied or detached value still carries, for a place without one
+ * (an array's item). Returns 'v'. */
+static cJSON *unnamed(cJSON *v) {
+  if (v && v->string && !(v->type & cJSON_StringIsConst))
+    cJSON_free(v->string);
+  if (v)
+    v->string = NULL;
+  return v;
+}
+
 /* Replaces the members of object 'doc' with those of 'v' (taken; an object). */
 static int doc_swap(cJSON *doc, cJSON *v, const char *at, proto_error_t *err) {
   if (!cJSON_IsObject(v)) {
@@ -142,8 +152,8 @@ static int spot_add(cJSON *doc, const spot_t *s, cJSON *v, const char *at, proto
                              "\"-\" or an item's id",
                              at, n, s->token, n);
     }
-    ok =
-        i == n ? cJSON_AddItemToArray(s->parent, v) : cJSON_InsertItemInArray(s->parent, (int)i, v);
+    ok = i == n ? cJSON_AddItemToArray(s->parent, unnamed(v))
+                : cJSON_InsertItemInArray(s->parent, (int)i, unnamed(v));
   } else {
     cJSON_Delete(v);
     return proto_error_set(err, PROTO_E_NOT_FOUND, at, "%s: \"%.40s\" is inside a %s", at, s->token,
@@ -239,7 +249,9 @@ static int op_apply(cJSON *doc, const cJSON *o, int i, proto_error_t *err) {
       return proto_error_set(err, PROTO_E_NOT_FOUND, at_path, "%s: nothing at \"%.60s\"", at_path,
                              path);
     v = cJSON_Duplicate(value, 1);
-    if (to.parent && v && !cJSON_ReplaceItemViaPointer(to.parent, target, v)) {
+    if (to.parent && v &&
+        !(cJSON_IsObject(to.parent) ? cJSON_ReplaceItemInObjectCaseSensitive(to.parent, to.token, v)
+                                    : cJSON_ReplaceItemViaPointer(to.parent, target, unnamed(v)))) {
       cJSON_Delete(v);
       v = NULL;
     } else if (!to.parent && v) {

@@ -173,6 +173,10 @@ static int edit_path(cJSON *doc, const char *path, const cJSON *value, scene_err
     ok = cJSON_ReplaceItemViaPointer(parent, old, v);
   else if (v)
     ok = cJSON_AddItemToArray(parent, v);
+  if (v && !cJSON_IsObject(parent) && ok && v->string && !(v->type & cJSON_StringIsConst)) {
+    cJSON_free(v->string); /* The copy kept the name "value"; an array's item has none. */
+    v->string = NULL;
+  }
   if (!ok) {
     if (v && !cJSON_IsObject(parent))
       cJSON_Delete(v);
