@@ -191,6 +191,22 @@ def json_patch(s):
 
 
 @T
+def python_client(s):
+    sys.path.insert(0, os.path.join(ROOT, "client", "python"))
+    import volfx
+    c = s.srv.connect()
+    fresh(c, "py")
+    v = version(c, "py")
+    with volfx.Client("127.0.0.1", s.srv.port) as py:
+        py.changes([{"path": "camera.fov_y", "value": 31}, {"path": "objects.orb.color",
+                                                            "value": [0, 0, 1]}], scene="py")
+        py.json_patch([{"op": "replace", "path": "/camera/near", "value": 0.3}], scene="py")
+    s.eq(version(c, "py"), v + 2, "the Python client: two calls, two versions")
+    s.eq(get(c, "py", "camera.fov_y"), 31, "Client.changes")
+    s.eq(get(c, "py", "camera.near"), 0.3, "Client.json_patch")
+
+
+@T
 def did_you_mean(s):
     c = s.srv.connect()
     fresh(c, "dym")

@@ -252,6 +252,16 @@ class Client:
         """Applies an RFC 7386 merge patch atomically; returns ``{"version": n}``."""
         return self.call("scene.set", scene=scene, patch=patch)
 
+    def changes(self, changes, scene="main"):
+        """Applies ``[{"path", "value"} or {"path", "patch"}, ...]`` in order as one version,
+        or nothing; returns ``{"version": n}``."""
+        return self.call("scene.set", scene=scene, changes=list(changes))
+
+    def json_patch(self, ops, scene="main"):
+        """Applies an RFC 6902 JSON Patch (a list of operations) as one version, or nothing;
+        returns ``{"version": n}``."""
+        return self.call("scene.set", scene=scene, ops=list(ops))
+
     def step(self, n=1, dt=None, scene="main"):
         params = {"scene": scene, "steps": n}
         if dt is not None:
