@@ -5,7 +5,6 @@
  * message and data.path to stderr. Results are printed as JSON; `render` and `watch` write
  * attachment bytes to files and print a one-line summary.
  */
-#include <ctype.h>
 #include <errno.h>
 #include <signal.h>
 #include <stdio.h>
@@ -142,14 +141,19 @@ static int usage_error(const cli_t *cli, const char *fmt, const char *arg) {
   return EXIT_USAGE;
 }
 
-/* 1 when 'message' holds 'path' as a whole word (not inside a longer dotted name). */
+/*
+ * 1 when 'message' already says where the error is, so that " (path P)" would only repeat it:
+ * it names 'path' as its subject ("camera.fov_y: 500 is out of range"), or 'path' is "path",
+ * the member of scene.get and scene.set whose scene path the message quotes.
+ */
 static int names_path(const char *message, const char *path) {
   size_t n = strlen(path);
+  if (strcmp(path, "path") == 0) {
+    return 1;
+  }
   for (const char *m = strstr(message, path); m != NULL; m = strstr(m + 1, path)) {
     char before = m > message ? m[-1] : ' ';
-    char after = m[n];
-    if (!isalnum((unsigned char)before) && before != '_' && before != '.' &&
-        !isalnum((unsigned char)after) && after != '_' && (after != '.' || m[n + 1] == ' ')) {
+    if ((before == ' ' || m == message) && m[n] == ':' && m[n + 1] == ' ') {
       return 1;
     }
   }

@@ -64,6 +64,16 @@ static const char *op_path(char *at, size_t len, int i, const char *field) {
   return at;
 }
 
+/* Sets 'err' for pointer 'ptr' (of operation member 'at') that leads nowhere: token 'token' is
+ * not in 'container', with the member or id it was likely meant to be. Returns -1. */
+static int missing(proto_error_t *err, const char *at, const char *ptr, const cJSON *container,
+                   const char *token) {
+  const char *near = sch_suggest_json(container, token);
+  return proto_error_set(err, PROTO_E_NOT_FOUND, at,
+                         "%s: nothing at \"%.60s\" (no \"%.40s\")%s%.40s%s", at, ptr, token,
+                         near ? "; did you mean \"" : "", near ? near : "", near ? "\"?" : "");
+}
+
 /* Resolves 'ptr' to the container of its last token. Returns 0, or -1 with 'err' when the
  * pointer is malformed or a container on the way does not exist. */
 static int spot_find(cJSON *doc, const char *ptr, const char *at, spot_t *s, proto_error_t *err) {
@@ -90,8 +100,7 @@ static int spot_find(cJSON *doc, const char *ptr, const char *at, spot_t *s, pro
     }
     cJSON *next = token_child(cur, s->token);
     if (!next)
-      return proto_error_set(err, PROTO_E_NOT_FOUND, at,
-                             "%s: \"%.60s\": nothing at \"%.40s\" on the way", at, ptr, s->token);
+      return missing(err, at, ptr, cur, s->token);
     cur = next;
   }
 }
@@ -167,7 +176,8 @@ static int spot_add(cJSON *doc, const spot_t *s, cJSON *v, const char *at, proto
 }
 
 /* Detaches the value at spot 's' (not the document) and returns it, or NULL with 'err'. */
-static cJSON *spot_take(cJSON *doc, const spot_t *s, const char *at, proto_error_t *err) {
+static cJSON *spot_take(cJSON *doc, const spot_t *s, const char *ptr, const char *at,
+                        proto_error_t *err) {
   cJSON *v = s->parent ? spot_value(doc, s) : NULL;
   if (!s->parent) {
     proto_error_set(err, PROTO_E_INVALID_PARAMS, at, "%s: the whole document cannot be removed",
@@ -175,7 +185,7 @@ static cJSON *spot_take(cJSON *doc, const spot_t *s, const char *at, proto_error
     return NULL;
   }
   if (!v) {
-    proto_error_set(err, PROTO_E_NOT_FOUND, at, "%s: nothing at \"%.40s\"", at, s->token);
+    missing(err, at, ptr, s->parent, s->token);
     return NULL;
   }
   return cJSON_DetachItemViaPointer(s->parent, v);
@@ -234,20 +244,18 @@ static int op_apply(cJSON *doc, const cJSON *o, int i, proto_error_t *err) {
   switch (k) {
   case OP_TEST:
     if (!target)
-      return proto_error_set(err, PROTO_E_NOT_FOUND, at_path, "%s: nothing at \"%.60s\"", at_path,
-                             path);
+      return missing(err, at_path, path, to.parent, to.token);
     if (!cJSON_Compare(target, value, 1))
       return proto_error_set(err, PROTO_E_INVALID_PARAMS, at,
                              "%s: test failed: the value at \"%.60s\" differs", at, path);
     return 0;
   case OP_REMOVE:
-    v = spot_take(doc, &to, at_path, err);
+    v = spot_take(doc, &to, path, at_path, err);
     cJSON_Delete(v);
     return v ? 0 : -1;
   case OP_REPLACE:
     if (!target)
-      return proto_error_set(err, PROTO_E_NOT_FOUND, at_path, "%s: nothing at \"%.60s\"", at_path,
-                             path);
+      return missing(err, at_path, path, to.parent, to.token);
     v = cJSON_Duplicate(value, 1);
     if (to.parent && v &&
         !(cJSON_IsObject(to.parent) ? cJSON_ReplaceItemInObjectCaseSensitive(to.parent, to.token, v)
@@ -264,8 +272,7 @@ static int op_apply(cJSON *doc, const cJSON *o, int i, proto_error_t *err) {
   case OP_COPY: {
     cJSON *s = spot_value(doc, &src);
     if (!s)
-      return proto_error_set(err, PROTO_E_NOT_FOUND, at_from, "%s: nothing at \"%.60s\"", at_from,
-                             from);
+      return missing(err, at_from, from, src.parent, src.token);
     v = cJSON_Duplicate(s, 1);
     break;
   }
@@ -274,9 +281,9 @@ static int op_apply(cJSON *doc, const cJSON *o, int i, proto_error_t *err) {
     if (strncmp(path, from, n) == 0 && path[n] == '/')
       return proto_error_set(err, PROTO_E_INVALID_PARAMS, at_path,
                              "%s: a value cannot move into itself", at_path);
-    if (strcmp(path, from) == 0)
+    if (strcmp(path, from) == 0 && spot_value(doc, &src))
       return 0;
-    v = spot_take(doc, &src, at_from, err);
+    v = spot_take(doc, &src, from, at_from, err);
     if (!v)
       return -1;
     /* Taking the value out may have moved the destination's array index. */

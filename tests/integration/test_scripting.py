@@ -172,7 +172,11 @@ def json_patch(s):
         ([{"op": "replace", "path": "/camera/fov~2y", "value": 1}], E_PARAMS, "ops.0.path",
          "a bad ~ escape"),
         ([{"op": "replace", "path": "/camera/fovy", "value": 1}], E_NOT_FOUND, "ops.0.path",
-         "replace of a missing member"),
+         "replace of a missing member", 'did you mean "fov_y"'),
+        ([{"op": "test", "path": "/objects/orbb/scale", "value": 1}], E_NOT_FOUND, "ops.0.path",
+         "a pointer through an unknown id", 'did you mean "orb"'),
+        ([{"op": "move", "from": "/camera/x", "path": "/camera/x"}], E_NOT_FOUND, "ops.0.from",
+         "a move of nothing onto itself"),
         ([{"op": "remove", "path": "/objects/nosuch"}], E_NOT_FOUND, "ops.0.path",
          "remove of an unknown id"),
         ([{"op": "add", "path": "/objects/99", "value": {"shape": "box"}}], E_NOT_FOUND,
@@ -186,8 +190,8 @@ def json_patch(s):
         ([{"op": "remove", "path": ""}], E_PARAMS, "ops.0.path", "removing the document"),
         ([7], E_PARAMS, "ops.0", "an operation that is not an object"),
     ]
-    for ops, code, path, what in cases:
-        refused_unchanged(s, c, "jp", {"ops": ops}, code, path, what)
+    for ops, code, path, what, *says in cases:
+        refused_unchanged(s, c, "jp", {"ops": ops}, code, path, what, *says)
 
 
 @T

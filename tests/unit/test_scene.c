@@ -365,6 +365,43 @@ static void test_set_path(void) {
   scene_destroy(s);
 }
 
+/* Change lists and JSON Patch: one version when every step and the result pass, none else. */
+static void test_change_lists(void) {
+  scene_t *s = new_scene();
+  scene_error_t err;
+  CHECK(patch_text(s, "{\"objects\": [{\"id\": \"orb\", \"shape\": \"sphere\"}]}", &err) == 0);
+  unsigned long v = s->version;
+  cJSON *changes = J("[{\"path\": \"camera.fov_y\", \"value\": 30}, {\"path\": "
+                     "\"objects.orb.scale\", \"value\": [2, 2, 2]}, {\"path\": \"camera\", "
+                     "\"patch\": {\"near\": 0.5}}]");
+  CHECK(scene_set_changes(s, changes, &err) == 0 && s->version == v + 1);
+  CHECK(num_at(s, "camera.fov_y") == 30 && num_at(s, "objects.0.scale.1") == 2 &&
+        num_at(s, "camera.near") == 0.5);
+  cJSON_Delete(changes);
+  changes = J("[{\"path\": \"camera.fov_y\", \"value\": 50}, {\"path\": \"camera.fovy\", "
+              "\"value\": 1}]");
+  CHECK(scene_set_changes(s, changes, &err) == -1 && strcmp(err.path, "camera.fovy") == 0 &&
+        strstr(err.message, "did you mean \"fov_y\"") != NULL);
+  CHECK(s->version == v + 1 && num_at(s, "camera.fov_y") == 30);
+  cJSON_Delete(changes);
+
+  cJSON *ops = J("[{\"op\": \"test\", \"path\": \"/camera/fov_y\", \"value\": 30}, {\"op\": "
+                 "\"replace\", \"path\": \"/objects/orb/id\", \"value\": \"ball\"}, {\"op\": "
+                 "\"copy\", \"from\": \"/objects/0\", \"path\": \"/objects/-\"}, {\"op\": "
+                 "\"replace\", \"path\": \"/objects/1/id\", \"value\": \"b~/\"}, {\"op\": "
+                 "\"move\", \"from\": \"/objects/b~0~1\", \"path\": \"/objects/0\"}]");
+  CHECK(scene_apply_ops(s, ops, &err) == 0 && s->version == v + 2);
+  CHECK(strcmp(str_at(s, "objects.0.id"), "b~/") == 0 &&
+        strcmp(str_at(s, "objects.1.id"), "ball") == 0);
+  cJSON_Delete(ops);
+  ops = J("[{\"op\": \"remove\", \"path\": \"/objects/ball\"}, {\"op\": \"test\", \"path\": "
+          "\"/camera/fov_y\", \"value\": 31}]");
+  CHECK(scene_apply_ops(s, ops, &err) == -1 && strcmp(err.path, "ops.1") == 0);
+  CHECK(s->version == v + 2 && cJSON_GetArraySize(sch_path_get(s->doc, "objects")) == 2);
+  cJSON_Delete(ops);
+  scene_destroy(s);
+}
+
 static void test_get(void) {
   scene_t *s = new_scene();
   scene_error_t err;
@@ -713,6 +750,7 @@ int main(void) {
   test_patch();
   test_refused();
   test_set_path();
+  test_change_lists();
   test_get();
   test_json_schema();
   test_engine();
