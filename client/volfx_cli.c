@@ -570,14 +570,37 @@ static char *scene_preset_of(const cli_t *cli, const char *name) {
   return preset;
 }
 
+/* Whether scene.presets lists 'preset'; reports when it does not (or the call fails). */
+static int preset_known(const cli_t *cli, const char *preset) {
+  cJSON *r = NULL;
+  if (rpc(cli, "scene.presets", cJSON_CreateObject(), &r, NULL) != 0) {
+    return 0;
+  }
+  int found = 0;
+  const cJSON *e;
+  cJSON_ArrayForEach(e, cJSON_GetObjectItemCaseSensitive(r, "presets")) {
+    found |= cJSON_IsString(e) && strcmp(e->valuestring, preset) == 0;
+  }
+  cJSON_Delete(r);
+  if (!found) {
+    diag_prefix(cli);
+    fprintf(stderr,
+            "not found: '%s' is not a preset scene.create takes (volfx scene presets); "
+            "give --preset NAME\n",
+            preset);
+  }
+  return found;
+}
+
 /* scene reset [--preset P]: deletes the scene and creates it again under its name, from P or
- * the preset it was created from (defaults when none); its clock starts at frame 0. */
+ * the preset it was created from (defaults when none); its clock starts at frame 0. The preset
+ * is checked first, so that a reset that cannot create the scene again leaves it alone. */
 static int scene_reset(const cli_t *cli, const char *preset) {
   cJSON *p = scene_params(cli);
   const char *name = cJSON_GetStringValue(cJSON_GetObjectItemCaseSensitive(p, "scene"));
   char *from = preset != NULL ? strdup(preset) : scene_preset_of(cli, name);
   cJSON *r = NULL;
-  int rc = from == NULL ? EXIT_FAIL : 0;
+  int rc = from == NULL || (from[0] != '\0' && !preset_known(cli, from)) ? EXIT_FAIL : 0;
   if (rc == 0) {
     cJSON *d = cJSON_CreateObject();
     cJSON_AddStringToObject(d, "name", name);

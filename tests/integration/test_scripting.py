@@ -282,6 +282,12 @@ def cli_scene_commands(s):
     cli(s, "scene", "delete", "cs")
     s.check(all(x["name"] != "cs" for x in c.ok("scene.list", {})[0]["scenes"]),
             "scene delete")
+    cli(s, "scene", "create", "cs2", "--preset", "demo")
+    rc, _, err = cli(s, "--scene", "cs2", "scene", "reset", "--preset", "nosuch", ok=False)
+    s.check(rc == 1 and "not a preset" in err, "scene reset to an unknown preset", err)
+    s.check(any(x["name"] == "cs2" for x in c.ok("scene.list", {})[0]["scenes"]),
+            "a refused reset leaves the scene")
+    cli(s, "scene", "delete", "cs2")
     rc, _, err = cli(s, "scene", "frob", ok=False)
     s.check(rc == 2 and "scene needs one of" in err, "an unknown scene command", err)
     rc, _, err = cli(s, "scene", "create", ok=False)
