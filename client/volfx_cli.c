@@ -10,6 +10,7 @@
 #include <stdio.h>
 #include <stdlib.h>
 #include <string.h>
+#include <sys/stat.h>
 
 #include "cli_batch.h"
 #include "proto.h"
@@ -36,13 +37,15 @@ static const char usage_text[] =
     "  info                          server.info\n"
     "  get [PATH]                    scene.get, the whole scene or a dotted path (camera.fov_y)\n"
     "  set PATH=VALUE...             scene.set; VALUE is JSON when it parses as JSON, else a\n"
-    "                                string. When no PATH has an array index (an all-digit\n"
-    "                                segment such as objects.0.color), all assignments form ONE\n"
-    "                                merge patch, applied atomically (later ones win; a null\n"
-    "                                VALUE deletes the member; an object VALUE merges). Otherwise\n"
-    "                                each assignment is its own path-form call, in order, and the\n"
-    "                                first error stops the rest (earlier ones stay applied).\n"
-    "  set --patch JSON              scene.set with an RFC 7386 merge patch\n"
+    "                                string. PATH is dotted; array items by index or id\n"
+    "                                (objects.0.color, objects.orb.color). All assignments are\n"
+    "                                ONE change, applied in order and atomically (one scene\n"
+    "                                version, or nothing on any error): a null VALUE deletes\n"
+    "                                the member (or removes the array item), an object VALUE\n"
+    "                                merges into the value at PATH, any other VALUE replaces it\n"
+    "  set --patch JSON              scene.set with an RFC 7386 merge patch (items of objects,\n"
+    "                                waves and volumes that carry an id merge by id)\n"
+    "  set --ops JSON                scene.set with an RFC 6902 JSON Patch (array of ops)\n"
     "  step N [--dt S]               sim.step: N steps of S seconds (default sim.dt)\n"
     "  play [RATE]                   sim.play at RATE steps per second (server default 60)\n"
     "  pause                         sim.pause\n"
@@ -71,6 +74,14 @@ static const char usage_text[] =
     "  stats                         stats\n"
     "  discover                      rpc.discover (the OpenRPC document)\n"
     "  scenes                        scene.list\n"
+    "  scene list | presets          scene.list, scene.presets\n"
+    "  scene create NAME [--preset P]\n"
+    "                                scene.create from preset P, or defaults\n"
+    "  scene delete NAME             scene.delete\n"
+    "  scene save FILE | load FILE   scene.save, scene.load (FILE under the server's data dir)\n"
+    "  scene reset [--preset P]      delete the scene (--scene, default main) and create it\n"
+    "                                again from P, or from the preset it was made from\n"
+    "                                (defaults when none): frame 0, its subscriptions end\n"
     "  call METHOD [JSON_PARAMS]     any method, params given raw\n"
     "  shutdown                      server.shutdown\n"
     "  help                          this text\n"
@@ -131,8 +142,28 @@ static int usage_error(const cli_t *cli, const char *fmt, const char *arg) {
 }
 
 /*
- * Reports error 'rc': the kind of a JSON-RPC error, then the server's message and data.path,
- * e.g. "invalid params: camera.fov_y: 500 is out of range [1, 179] (path camera.fov_y)".
+ * 1 when 'message' already says where the error is, so that " (path P)" would only repeat it:
+ * it names 'path' as its subject ("camera.fov_y: 500 is out of range"), or 'path' is "path",
+ * the member of scene.get and scene.set whose scene path the message quotes.
+ */
+static int names_path(const char *message, const char *path) {
+  size_t n = strlen(path);
+  if (strcmp(path, "path") == 0) {
+    return 1;
+  }
+  for (const char *m = strstr(message, path); m != NULL; m = strstr(m + 1, path)) {
+    char before = m > message ? m[-1] : ' ';
+    if ((before == ' ' || m == message) && m[n] == ':' && m[n + 1] == ' ') {
+      return 1;
+    }
+  }
+  return 0;
+}
+
+/*
+ * Reports error 'rc': the kind of a JSON-RPC error, then the server's message and data.path
+ * when the message does not already name it, e.g. "invalid params: camera.fov_y: 500 is out of
+ * range [1, 179] (degrees)" or "invalid params: patch must be a JSON object (path patch)".
  */
 static int report(const cli_t *cli, int rc, const volfx_error_t *e) {
   diag_prefix(cli);
@@ -144,7 +175,7 @@ static int report(const cli_t *cli, int rc, const volfx_error_t *e) {
   } else {
     fputs(e->message[0] != '\0' ? e->message : volfx_strerror(rc), stderr);
   }
-  if (e->path[0] != '\0') {
+  if (e->path[0] != '\0' && !names_path(e->message, e->path)) {
     fprintf(stderr, " (path %s)", e->path);
   }
   fputc('\n', stderr);
@@ -312,6 +343,24 @@ static cJSON *parse_json(const char *s) {
   return cJSON_ParseWithOpts(s, NULL, 1);
 }
 
+/* Parses 'text', the JSON argument of 'what' ("set --patch"); when it is not JSON, reports
+ * where the text stops being JSON and returns NULL. */
+static cJSON *json_arg(const cli_t *cli, const char *what, const char *text) {
+  const char *end = NULL;
+  cJSON *v = cJSON_ParseWithOpts(text, &end, 1);
+  if (v != NULL) {
+    return v;
+  }
+  size_t at = end != NULL && end >= text ? (size_t)(end - text) : 0;
+  diag_prefix(cli);
+  if (at >= strlen(text)) {
+    fprintf(stderr, "%s: invalid JSON: the text ends before the value does: %s\n", what, text);
+  } else {
+    fprintf(stderr, "%s: invalid JSON near byte %zu ('%c'): %s\n", what, at + 1, text[at], text);
+  }
+  return NULL;
+}
+
 /*
  * Options that render and watch share, added to 'p' as they are met. Returns 1 when argv[*i]
  * was one of them, 0 when not, EXIT_USAGE (negated) on a bad value.
@@ -353,7 +402,10 @@ static int frame_opt(const cli_t *cli, int argc, char **argv, int *i, cJSON *p) 
       item = split_list(v);
       break;
     default:
-      item = parse_json(v);
+      item = json_arg(cli, opts[k].name, v);
+      if (item == NULL) {
+        return -EXIT_USAGE;
+      }
       break;
     }
     if (item == NULL) {
@@ -375,9 +427,24 @@ static void default_format(cJSON *p) {
   }
 }
 
-/* Writes 'n' bytes to 'path' ("-" is stdout). Returns 0 or EXIT_FAIL after reporting. */
+/* Creates the directories above file 'path' that are missing ("out/a" for "out/a/f.png"). */
+static void make_parents(const char *path) {
+  char dir[4096];
+  snprintf(dir, sizeof(dir), "%s", path);
+  for (char *slash = strchr(dir + 1, '/'); slash != NULL; slash = strchr(slash + 1, '/')) {
+    *slash = '\0';
+    mkdir(dir, 0777); /* One that exists stays; one that cannot be made fails the fopen. */
+    *slash = '/';
+  }
+}
+
+/* Writes 'n' bytes to 'path' ("-" is stdout), creating missing directories above it. Returns 0
+ * or EXIT_FAIL after reporting. */
 static int write_file(const cli_t *cli, const char *path, const void *data, size_t n) {
   int to_stdout = strcmp(path, "-") == 0;
+  if (!to_stdout) {
+    make_parents(path);
+  }
   FILE *f = to_stdout ? stdout : fopen(path, "wb");
   int ok = f != NULL && (n == 0 || fwrite(data, 1, n, f) == n);
   if (f != NULL && !to_stdout) {
@@ -405,122 +472,196 @@ static int cmd_get(const cli_t *cli, int argc, char **argv) {
   return rpc_print(cli, "scene.get", p);
 }
 
-/* 1 when a dotted path has a segment made only of digits: an array index. */
-static int has_index(const char *path) {
-  const char *s = path;
-  while (*s != '\0') {
-    size_t n = strcspn(s, ".");
-    if (n > 0 && strspn(s, "0123456789") >= n) {
-      return 1;
-    }
-    s += n;
-    if (*s == '.') {
-      s++;
-    }
-  }
-  return 0;
-}
-
-/* Sets 'value' (taken) at dotted 'path' inside merge patch 'patch', creating objects. */
-static int patch_put(cJSON *patch, const char *path, cJSON *value) {
-  cJSON *node = patch;
-  const char *s = path;
-  for (;;) {
-    size_t n = strcspn(s, ".");
-    char *key = strndup(s, n);
-    if (key == NULL || n == 0) {
-      free(key);
-      cJSON_Delete(value);
-      return -1;
-    }
-    if (s[n] == '\0') {
-      cJSON_DeleteItemFromObjectCaseSensitive(node, key);
-      cJSON_AddItemToObject(node, key, value);
-      free(key);
-      return 0;
-    }
-    cJSON *child = cJSON_GetObjectItemCaseSensitive(node, key);
-    if (!cJSON_IsObject(child)) {
-      cJSON_DeleteItemFromObjectCaseSensitive(node, key);
-      child = cJSON_AddObjectToObject(node, key);
-    }
-    free(key);
-    node = child;
-    s += n + 1;
-  }
-}
-
-/* The value of an assignment: JSON when 's' parses as JSON, otherwise the string itself. */
-static cJSON *assigned_value(const char *s) {
+/* The value of an assignment: JSON when 's' parses as JSON, otherwise the string itself; NULL
+ * (reported) when 's' starts like a JSON object, array or string but is not valid JSON. */
+static cJSON *assigned_value(const cli_t *cli, const char *assignment, const char *s) {
   cJSON *v = parse_json(s);
-  return v != NULL ? v : cJSON_CreateString(s);
+  if (v != NULL || (s[0] != '{' && s[0] != '[' && s[0] != '"')) {
+    return v != NULL ? v : cJSON_CreateString(s);
+  }
+  return json_arg(cli, assignment, s);
 }
 
-/* set PATH=VALUE... | set --patch JSON */
+/* set PATH=VALUE... | set --patch JSON | set --ops JSON */
 static int cmd_set(const cli_t *cli, int argc, char **argv) {
   if (argc < 2) {
-    return usage_error(cli, "set needs PATH=VALUE or --patch JSON%s", NULL);
+    return usage_error(cli, "set needs PATH=VALUE, --patch JSON or --ops JSON%s", NULL);
   }
-  if (strcmp(argv[1], "--patch") == 0) {
-    cJSON *patch = argc == 3 ? parse_json(argv[2]) : NULL;
-    if (patch == NULL) {
-      return usage_error(cli, "set --patch needs one JSON argument%s", NULL);
+  if (strcmp(argv[1], "--patch") == 0 || strcmp(argv[1], "--ops") == 0) {
+    int ops = strcmp(argv[1], "--ops") == 0;
+    if (argc != 3) {
+      return usage_error(cli, "set %s needs one JSON argument", argv[1]);
+    }
+    cJSON *arg = json_arg(cli, ops ? "set --ops" : "set --patch", argv[2]);
+    if (arg == NULL) {
+      return EXIT_USAGE;
     }
     cJSON *p = scene_params(cli);
-    cJSON_AddItemToObject(p, "patch", patch);
+    cJSON_AddItemToObject(p, ops ? "ops" : "patch", arg);
     return rpc_print(cli, "scene.set", p);
   }
 
-  int indexed = 0;
+  /* Every assignment is one change of one scene.set: applied in order, one version or none. */
+  cJSON *changes = cJSON_CreateArray();
   for (int i = 1; i < argc; i++) {
     const char *eq = strchr(argv[i], '=');
     if (eq == NULL || eq == argv[i]) {
+      cJSON_Delete(changes);
       return usage_error(cli, "expected PATH=VALUE, got '%s'", argv[i]);
     }
     char *path = strndup(argv[i], (size_t)(eq - argv[i]));
     int bad = path == NULL || path[strlen(path) - 1] == '.' || path[0] == '.' ||
               strstr(path, "..") != NULL;
-    indexed |= !bad && has_index(path);
-    free(path);
-    if (bad) {
-      return usage_error(cli, "bad path in '%s'", argv[i]);
-    }
-  }
-
-  if (!indexed) {
-    cJSON *patch = cJSON_CreateObject();
-    for (int i = 1; i < argc; i++) {
-      const char *eq = strchr(argv[i], '=');
-      char *path = strndup(argv[i], (size_t)(eq - argv[i]));
-      int rc = path != NULL ? patch_put(patch, path, assigned_value(eq + 1)) : -1;
+    cJSON *value = bad ? NULL : assigned_value(cli, argv[i], eq + 1);
+    if (value == NULL) {
       free(path);
-      if (rc != 0) {
-        cJSON_Delete(patch);
-        return usage_error(cli, "bad path in '%s'", argv[i]);
-      }
+      cJSON_Delete(changes);
+      return bad ? usage_error(cli, "bad path in '%s'", argv[i]) : EXIT_USAGE;
     }
-    cJSON *p = scene_params(cli);
-    cJSON_AddItemToObject(p, "patch", patch);
-    return rpc_print(cli, "scene.set", p);
-  }
-
-  cJSON *last = NULL;
-  for (int i = 1; i < argc; i++) {
-    const char *eq = strchr(argv[i], '=');
-    char *path = strndup(argv[i], (size_t)(eq - argv[i]));
-    cJSON *p = scene_params(cli);
-    cJSON_AddStringToObject(p, "path", path != NULL ? path : "");
-    cJSON_AddItemToObject(p, "value", assigned_value(eq + 1));
+    cJSON *change = cJSON_CreateObject();
+    cJSON_AddStringToObject(change, "path", path);
+    cJSON_AddItemToObject(change, cJSON_IsObject(value) ? "patch" : "value", value);
+    cJSON_AddItemToArray(changes, change);
     free(path);
-    cJSON_Delete(last);
-    last = NULL;
-    if (rpc(cli, "scene.set", p, &last, NULL) != 0) {
-      return EXIT_FAIL;
+  }
+  cJSON *p = scene_params(cli);
+  cJSON_AddItemToObject(p, "changes", changes);
+  return rpc_print(cli, "scene.set", p);
+}
+
+/* The scene commands, each one method: NAME is params' "name" (the scene itself for create and
+ * delete), FILE its "file"; the rest take the scene as --scene says. */
+typedef enum { SCENE_ARG_NONE, SCENE_ARG_NAME, SCENE_ARG_FILE } scene_arg_t;
+
+static const struct {
+  const char *word, *method;
+  scene_arg_t arg;
+  int with_scene, takes_preset;
+} scene_commands[] = {
+    {"list", "scene.list", SCENE_ARG_NONE, 0, 0},
+    {"presets", "scene.presets", SCENE_ARG_NONE, 0, 0},
+    {"create", "scene.create", SCENE_ARG_NAME, 0, 1},
+    {"delete", "scene.delete", SCENE_ARG_NAME, 0, 0},
+    {"save", "scene.save", SCENE_ARG_FILE, 1, 0},
+    {"load", "scene.load", SCENE_ARG_FILE, 1, 0},
+    {"reset", NULL, SCENE_ARG_NONE, 1, 1},
+};
+
+/* The preset scene 'name' was created from, per scene.list (NULL: no such scene, reported). */
+static char *scene_preset_of(const cli_t *cli, const char *name) {
+  cJSON *r = NULL;
+  if (rpc(cli, "scene.list", cJSON_CreateObject(), &r, NULL) != 0) {
+    return NULL;
+  }
+  char *preset = NULL;
+  const cJSON *e;
+  cJSON_ArrayForEach(e, cJSON_GetObjectItemCaseSensitive(r, "scenes")) {
+    const char *n = cJSON_GetStringValue(cJSON_GetObjectItemCaseSensitive(e, "name"));
+    const char *p = cJSON_GetStringValue(cJSON_GetObjectItemCaseSensitive(e, "preset"));
+    if (n != NULL && strcmp(n, name) == 0) {
+      preset = strdup(p != NULL ? p : "");
     }
   }
-  print_json(last);
-  cJSON_Delete(last);
-  return 0;
+  cJSON_Delete(r);
+  if (preset == NULL) {
+    diag_prefix(cli);
+    fprintf(stderr, "not found: no scene named '%s'\n", name);
+  }
+  return preset;
+}
+
+/* Whether scene.presets lists 'preset'; reports when it does not (or the call fails). */
+static int preset_known(const cli_t *cli, const char *preset) {
+  cJSON *r = NULL;
+  if (rpc(cli, "scene.presets", cJSON_CreateObject(), &r, NULL) != 0) {
+    return 0;
+  }
+  int found = 0;
+  const cJSON *e;
+  cJSON_ArrayForEach(e, cJSON_GetObjectItemCaseSensitive(r, "presets")) {
+    found |= cJSON_IsString(e) && strcmp(e->valuestring, preset) == 0;
+  }
+  cJSON_Delete(r);
+  if (!found) {
+    diag_prefix(cli);
+    fprintf(stderr,
+            "not found: '%s' is not a preset scene.create takes (volfx scene presets); "
+            "give --preset NAME\n",
+            preset);
+  }
+  return found;
+}
+
+/* scene reset [--preset P]: deletes the scene and creates it again under its name, from P or
+ * the preset it was created from (defaults when none); its clock starts at frame 0. The preset
+ * is checked first, so that a reset that cannot create the scene again leaves it alone. */
+static int scene_reset(const cli_t *cli, const char *preset) {
+  cJSON *p = scene_params(cli);
+  const char *name = cJSON_GetStringValue(cJSON_GetObjectItemCaseSensitive(p, "scene"));
+  char *from = preset != NULL ? strdup(preset) : scene_preset_of(cli, name);
+  cJSON *r = NULL;
+  int rc = from == NULL || (from[0] != '\0' && !preset_known(cli, from)) ? EXIT_FAIL : 0;
+  if (rc == 0) {
+    cJSON *d = cJSON_CreateObject();
+    cJSON_AddStringToObject(d, "name", name);
+    rc = rpc(cli, "scene.delete", d, &r, NULL);
+    cJSON_Delete(r);
+  }
+  if (rc == 0) {
+    cJSON *c = cJSON_CreateObject();
+    cJSON_AddStringToObject(c, "name", name);
+    if (from[0] != '\0') {
+      cJSON_AddStringToObject(c, "preset", from);
+    }
+    rc = rpc_print(cli, "scene.create", c);
+  }
+  free(from);
+  cJSON_Delete(p);
+  return rc;
+}
+
+/* scene list | presets | create NAME [--preset P] | delete NAME | save FILE | load FILE |
+ * reset [--preset P] */
+static int cmd_scene(const cli_t *cli, int argc, char **argv) {
+  size_t k = 0, n = sizeof(scene_commands) / sizeof(scene_commands[0]);
+  while (argc >= 2 && k < n && strcmp(argv[1], scene_commands[k].word) != 0) {
+    k++;
+  }
+  if (argc < 2 || k == n) {
+    return usage_error(cli, "scene needs one of list, presets, create, delete, save, load, reset%s",
+                       NULL);
+  }
+  const char *arg = NULL, *preset = NULL;
+  for (int i = 2; i < argc; i++) {
+    int m =
+        scene_commands[k].takes_preset ? take_opt(argc, argv, &i, "--preset", NULL, &preset) : 0;
+    if (m < 0) {
+      return usage_error(cli, "--preset needs a NAME%s", NULL);
+    }
+    if (m == 0 && (arg != NULL || scene_commands[k].arg == SCENE_ARG_NONE)) {
+      return usage_error(cli, "scene: unexpected '%s'", argv[i]);
+    }
+    if (m == 0) {
+      arg = argv[i];
+    }
+  }
+  if (scene_commands[k].arg != SCENE_ARG_NONE && arg == NULL) {
+    return usage_error(cli,
+                       scene_commands[k].arg == SCENE_ARG_NAME ? "scene %s needs a NAME"
+                                                               : "scene %s needs a FILE",
+                       argv[1]);
+  }
+  if (scene_commands[k].method == NULL) {
+    return scene_reset(cli, preset);
+  }
+  cJSON *p = scene_commands[k].with_scene ? scene_params(cli) : cJSON_CreateObject();
+  if (arg != NULL) {
+    cJSON_AddStringToObject(p, scene_commands[k].arg == SCENE_ARG_NAME ? "name" : "file", arg);
+  }
+  if (preset != NULL) {
+    cJSON_AddStringToObject(p, "preset", preset);
+  }
+  return rpc_print(cli, scene_commands[k].method, p);
 }
 
 /* step N [--dt S] */
@@ -713,6 +854,8 @@ static int cmd_watch(const cli_t *cli, int argc, char **argv) {
   catch_sigint(1);
 
   long received = 0;
+  long long last_frame = -1;
+  int warned = 0; /* The note that files are written over was given. */
   double dropped = 0;
   int status = 0;
   int idle_ms = 0;
@@ -746,6 +889,15 @@ static int cmd_watch(const cli_t *cli, int argc, char **argv) {
     if (cJSON_IsNumber(jd)) {
       dropped = jd->valuedouble;
     }
+    if (pattern != NULL && !by_arrival && received > 1 && frame <= last_frame && !warned) {
+      diag_prefix(cli);
+      fprintf(stderr,
+              "frame %lld came again (a paused scene shows one frame number): its file is "
+              "written over; --seq numbers the files by arrival\n",
+              frame);
+      warned = 1;
+    }
+    last_frame = frame;
     if (pattern != NULL) {
       char path[4096];
       if (frame_path(pattern, by_arrival ? received : frame, path, sizeof(path)) != 0) {
@@ -907,8 +1059,8 @@ static int cmd_call(const cli_t *cli, int argc, char **argv) {
     return usage_error(cli, "call needs METHOD [JSON_PARAMS]%s", NULL);
   }
   cJSON *p = NULL;
-  if (argc == 3 && (p = parse_json(argv[2])) == NULL) {
-    return usage_error(cli, "call: params are not valid JSON: %s", argv[2]);
+  if (argc == 3 && (p = json_arg(cli, "call", argv[2])) == NULL) {
+    return EXIT_USAGE;
   }
   return rpc_print(cli, argv[1], p);
 }
@@ -971,6 +1123,8 @@ static int run_command(cli_t *cli, int argc, char **argv) {
     return cmd_simple(cli, n, "rpc.discover", 0);
   } else if (strcmp(c, "scenes") == 0) {
     return cmd_simple(cli, n, "scene.list", 0);
+  } else if (strcmp(c, "scene") == 0) {
+    return cmd_scene(cli, n, words);
   } else if (strcmp(c, "call") == 0) {
     return cmd_call(cli, n, words);
   } else if (strcmp(c, "shutdown") == 0) {

@@ -32,6 +32,7 @@ static void scene_list(call_t *call) {
     cJSON_AddNumberToObject(o, "time", scene_time(e->scene));
     cJSON_AddBoolToObject(o, "playing", e->rate > 0);
     cJSON_AddNumberToObject(o, "version", (double)e->scene->version);
+    cJSON_AddStringToObject(o, "preset", e->scene->preset);
     cJSON_AddItemToArray(arr, o);
   }
   call_result(call, r);
@@ -115,6 +116,8 @@ static void scene_set_m(call_t *call) {
   const cJSON *patch = cJSON_GetObjectItem(call->params, "patch");
   const cJSON *path = cJSON_GetObjectItem(call->params, "path");
   const cJSON *value = cJSON_GetObjectItem(call->params, "value");
+  const cJSON *changes = cJSON_GetObjectItem(call->params, "changes");
+  const cJSON *ops = cJSON_GetObjectItem(call->params, "ops");
   scene_error_t err = {0};
   defer_want_t want;
   int rc;
@@ -123,30 +126,40 @@ static void scene_set_m(call_t *call) {
   scene_cloud_t cloud_before;
   int cloud_was = scene_cloud_config(e->scene, &cloud_before) == 0;
   const cloud_cells_t *cells_before = e->scene->cloud_cells;
-  if (patch && !path && !value) {
-    if (!cJSON_IsObject(patch)) {
-      call_error(call, PROTO_E_INVALID_PARAMS, "patch",
-                 "invalid params: patch must be a JSON object (RFC 7386 merge patch)");
-      return;
-    }
-    defer_arm(call, &want);
-    rc = scene_patch(e->scene, patch, &err);
-  } else if (path && value && !patch) {
-    if (!path->valuestring || !path->valuestring[0]) {
-      call_error(call, PROTO_E_INVALID_PARAMS, "path",
-                 "invalid params: path: a path must name a member of the scene (use a patch for "
-                 "the whole scene)");
-      return;
-    }
-    defer_arm(call, &want);
-    rc = scene_set_path(e->scene, path->valuestring, value, &err);
-  } else {
-    /* The member that is missing, or the one too many beside a patch. */
-    const char *at = patch ? (path ? "path" : "value") : path ? "value" : value ? "path" : "patch";
+  int forms = !!patch + !!(path || value) + !!changes + !!ops;
+  if (forms != 1 || (path && !value) || (value && !path)) {
+    /* The member that is missing, or the first of the second form given. */
+    const char *at = path && !value ? "value" : value && !path ? "path" : "patch";
+    if (forms > 1)
+      at = patch && (path || value)              ? (path ? "path" : "value")
+           : (patch || path || value) && changes ? "changes"
+                                                 : "ops";
     call_error(call, PROTO_E_INVALID_PARAMS, at,
-               "invalid params: %s: give either 'patch', or both 'path' and 'value'", at);
+               "invalid params: %s: give one of 'patch', 'path' with 'value', 'changes' or "
+               "'ops'",
+               at);
     return;
   }
+  if (patch && !cJSON_IsObject(patch)) {
+    call_error(call, PROTO_E_INVALID_PARAMS, "patch",
+               "invalid params: patch must be a JSON object (RFC 7386 merge patch)");
+    return;
+  }
+  if (path && (!path->valuestring || !path->valuestring[0])) {
+    call_error(call, PROTO_E_INVALID_PARAMS, "path",
+               "invalid params: path: a path must name a member of the scene (use a patch for "
+               "the whole scene)");
+    return;
+  }
+  defer_arm(call, &want);
+  if (patch)
+    rc = scene_patch(e->scene, patch, &err);
+  else if (path)
+    rc = scene_set_path(e->scene, path->valuestring, value, &err);
+  else if (changes)
+    rc = scene_set_changes(e->scene, changes, &err);
+  else
+    rc = scene_apply_ops(e->scene, ops, &err);
   if (defer_check(call, rc, &err, &want))
     return;
   if (rc != 0) {
@@ -338,7 +351,8 @@ static const sch_field_t get_params[] = {
     PARAM_SCENE,
     {.name = "path",
      .type = SCH_STRING,
-     .desc = "Dotted path of a sub-tree (\"camera.eye\", \"objects.0.color\"); omitted for all.",
+     .desc = "Dotted path of a sub-tree (\"camera.eye\", \"objects.0.color\", "
+             "\"objects.orb.color\": array items by index or id); omitted for all.",
      .max = 255,
      .flags = SCH_NO_DEFAULT},
     {0}};
@@ -346,17 +360,35 @@ static const sch_field_t set_params[] = {
     PARAM_SCENE,
     {.name = "patch",
      .type = SCH_ANY,
-     .desc = "An RFC 7386 merge patch of the scene document (arrays replaced whole).",
+     .desc = "An RFC 7386 merge patch of the scene document; an array whose items all have an "
+             "id updates the items of objects, waves or volumes with those ids (adding new "
+             "ones), any other array replaces the array whole.",
      .flags = SCH_NO_DEFAULT},
     {.name = "path",
      .type = SCH_STRING,
-     .desc = "Dotted path of one value to set (with 'value'); an index equal to an array's "
-             "length appends.",
+     .desc = "Dotted path of one value to set (with 'value'), array items by index or id "
+             "(\"objects.orb.scale\"); an index equal to an array's length appends, null "
+             "deletes.",
      .max = 255,
      .flags = SCH_NO_DEFAULT},
     {.name = "value",
      .type = SCH_ANY,
      .desc = "The value to set at 'path'.",
+     .flags = SCH_NO_DEFAULT},
+    {.name = "changes",
+     .type = SCH_ARRAY,
+     .desc = "Changes applied in order and committed as one version, or not at all: each "
+             "{path, value} (as the path form) or {path, patch} (a merge patch of the value at "
+             "path).",
+     .max = 1024,
+     .items = &(sch_field_t){.type = SCH_ANY},
+     .flags = SCH_NO_DEFAULT},
+    {.name = "ops",
+     .type = SCH_ARRAY,
+     .desc = "An RFC 6902 JSON Patch (add, remove, replace, move, copy, test; JSON Pointer "
+             "paths, array items by index or id), applied as one version, or not at all.",
+     .max = 1024,
+     .items = &(sch_field_t){.type = SCH_ANY},
      .flags = SCH_NO_DEFAULT},
     PARAM_TAG,
     {0}};
@@ -402,12 +434,15 @@ static const int step_errors[] = {PROTO_E_UNAUTHORIZED, PROTO_E_NOT_FOUND, PROTO
 static const int create_errors[] = {PROTO_E_UNAUTHORIZED, PROTO_E_NOT_FOUND, PROTO_E_LIMIT, 0};
 static const int set_errors[] = {PROTO_E_UNAUTHORIZED, PROTO_E_NOT_FOUND, PROTO_E_LIMIT, 0};
 
-const method_t method_scene_list = {.name = "scene.list",
-                                    .summary = "The named scenes with their clocks.",
-                                    .params = METHOD_PARAMS(list_params),
-                                    .result = "{scenes: [{name, frame, time, playing, version}]}",
-                                    .errors = auth_errors,
-                                    .handler = scene_list};
+const method_t method_scene_list = {
+    .name = "scene.list",
+    .summary = "The named scenes with their clocks.",
+    .params = METHOD_PARAMS(list_params),
+    .result = "{scenes: [{name, frame, time, playing, version, preset}]}: preset is "
+              "what the scene was created from, \"\" for "
+              "defaults",
+    .errors = auth_errors,
+    .handler = scene_list};
 const method_t method_scene_create = {
     .name = "scene.create",
     .summary = "Creates a named scene, with its own state and clock, from a preset or defaults.",
@@ -430,8 +465,8 @@ const method_t method_scene_get = {.name = "scene.get",
                                    .handler = scene_get_m};
 const method_t method_scene_set = {
     .name = "scene.set",
-    .summary = "Applies a merge patch or sets one path; validated as a whole, applied "
-               "atomically; errors name the offending path.",
+    .summary = "Applies a merge patch, one path, a list of changes or a JSON Patch; validated "
+               "as a whole, applied atomically as one version; errors name the offending path.",
     .params = METHOD_PARAMS(set_params),
     .result = "{version}",
     .errors = set_errors,

@@ -232,7 +232,7 @@ cJSON *scene_get(const scene_t *s, const char *path, scene_error_t *err) {
   proto_error_clear(err);
   cJSON *v = sch_path_get(s->doc, path);
   if (!v) {
-    proto_error_set(err, PROTO_E_NOT_FOUND, path, "no such path in the scene: %s", path);
+    scene_path_missing(s->doc, path, err);
     return NULL;
   }
   cJSON *copy = cJSON_Duplicate(v, 1);

@@ -37,9 +37,11 @@ void cloud_link_unref(cloud_link_t *l);
 
 typedef struct scene {
   char name[64];
-  uint64_t id; /* Unique among every scene this process made: work started for a scene never
-                  mistakes a later scene of the same name for it. */
-  cJSON *doc;  /* The validated document, defaults filled in. */
+  char preset[64]; /* The preset or file it was created from ("" for defaults), for scene.list
+                      and resetting it. */
+  uint64_t id;     /* Unique among every scene this process made: work started for a scene never
+                      mistakes a later scene of the same name for it. */
+  cJSON *doc;      /* The validated document, defaults filled in. */
   render_scene_t *snapshot; /* Compiled from 'doc'; replaced on every change. */
   unsigned long version;    /* Incremented on every change. */
   uint64_t changes;       /* Counts replacements of 'snapshot': anything that changes what is drawn
@@ -116,15 +118,26 @@ int scene_particles_fit_budget(const scene_t *s, uint64_t n, const char *path, s
 scene_t *scene_create(const char *name, const cJSON *preset, scene_error_t *err);
 void scene_destroy(scene_t *s);
 
-/* A copy of the document, or of the sub-tree at dotted 'path' (NULL or "" for all). NULL with
- * err->code PROTO_E_NOT_FOUND when the path does not exist. */
+/* A copy of the document, or of the sub-tree at dotted 'path' (NULL or "" for all; array items
+ * by index or id). NULL with err->code PROTO_E_NOT_FOUND, saying what is missing, when the path
+ * does not exist. */
 cJSON *scene_get(const scene_t *s, const char *path, scene_error_t *err);
 
-/* Applies an RFC 7386 merge patch (arrays replaced whole). Returns 0 or -1 with 'err'. */
+/* Applies an RFC 7386 merge patch, in which an array whose items all carry an "id" updates the
+ * items of a keyed array (objects, waves, volumes) with those ids, appending new ones, and any
+ * other array replaces the array whole. Returns 0 or -1 with 'err'. */
 int scene_patch(scene_t *s, const cJSON *patch, scene_error_t *err);
-/* Sets one value at a dotted path ("objects.0.color", "camera.fov_y"). The parent must exist;
- * an array index may be the array's length to append. Returns 0 or -1 with 'err'. */
+/* Sets one value at a dotted path ("objects.0.color", "objects.orb.color", "camera.fov_y").
+ * The parent must exist; an array index may be the array's length to append; null deletes a
+ * member (its default comes back) or removes an array's item. Returns 0 or -1 with 'err'. */
 int scene_set_path(scene_t *s, const char *path, const cJSON *value, scene_error_t *err);
+/* Applies the changes of array 'changes' in order, each {path, value} (as scene_set_path) or
+ * {path, patch} (a merge patch of the value at path), and commits the result once: one version,
+ * or nothing when any change or the result is refused. Returns 0 or -1 with 'err'. */
+int scene_set_changes(scene_t *s, const cJSON *changes, scene_error_t *err);
+/* Applies RFC 6902 JSON Patch 'ops' (json_patch.h) and commits the result once, all or
+ * nothing. Returns 0 or -1 with 'err'. */
+int scene_apply_ops(scene_t *s, const cJSON *ops, scene_error_t *err);
 
 /* Replaces the whole document. Returns 0 or -1 with 'err'. */
 int scene_replace(scene_t *s, const cJSON *doc, scene_error_t *err);

@@ -57,6 +57,12 @@ int scene_cloud_of(const cJSON *doc, scene_cloud_t *c);
  */
 int scene_compile_files_ready(const cJSON *doc, scene_error_t *err);
 
+/* ---- scene_edit.c ---- */
+
+/* Sets 'err' for a dotted path that names nothing in 'doc' (PROTO_E_NOT_FOUND), saying what is
+ * missing and what was likely meant. Returns -1. */
+int scene_path_missing(cJSON *doc, const char *path, scene_error_t *err);
+
 /* ---- scene.c ---- */
 
 /*

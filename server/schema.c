@@ -10,6 +10,7 @@
  */
 #include "schema.h"
 
+#include <ctype.h>
 #include <float.h>
 #include <stdint.h>
 #include <math.h>
@@ -259,7 +260,9 @@ static int validate_object(const sch_field_t *f, cJSON *v, const char *path, sch
         continue;
       /* The path names the member itself, for a client to point at; the message reads from
        * its container: 'objects.2: unknown member "colour"'. */
-      fail_at(err, sub, path, "unknown member \"%s\"", m->string);
+      const char *near = sch_suggest_field(f, m->string);
+      fail_at(err, sub, path, "unknown member \"%s\"%s%s%s", m->string,
+              near ? "; did you mean \"" : "", near ? near : "", near ? "\"?" : "");
       goto out;
     }
     if (slot[k]) {
@@ -529,6 +532,36 @@ static cJSON *member_n(cJSON *obj, const char *p, size_t n) {
   return NULL;
 }
 
+/* The item of array 'arr' whose member "id" is the string [p, p+n); NULL when none is, and
+ * for the empty id, which names no item. */
+static cJSON *item_by_id_n(const cJSON *arr, const char *p, size_t n) {
+  if (n == 0)
+    return NULL;
+  for (cJSON *it = arr->child; it; it = it->next) {
+    const cJSON *id = cJSON_IsObject(it) ? member_n(it, "id", 2) : NULL;
+    if (cJSON_IsString(id) && strlen(id->valuestring) == n && memcmp(id->valuestring, p, n) == 0)
+      return it;
+  }
+  return NULL;
+}
+
+cJSON *sch_item_by_id(const cJSON *arr, const char *id) {
+  return cJSON_IsArray(arr) && id ? item_by_id_n(arr, id, strlen(id)) : NULL;
+}
+
+/* One step of a dotted path: the member [p, p+n) of an object, or the item of an array at that
+ * decimal index or, for any other word, with that id. NULL when there is none. */
+static cJSON *path_step(cJSON *cur, const char *p, size_t n) {
+  if (n == 0)
+    return NULL;
+  if (cJSON_IsObject(cur))
+    return member_n(cur, p, n);
+  if (!cJSON_IsArray(cur))
+    return NULL;
+  long i = parse_index(p, n);
+  return i >= 0 ? cJSON_GetArrayItem(cur, (int)i) : item_by_id_n(cur, p, n);
+}
+
 cJSON *sch_path_get(cJSON *root, const char *path) {
   if (!path || !path[0])
     return root;
@@ -537,21 +570,124 @@ cJSON *sch_path_get(cJSON *root, const char *path) {
   while (cur) {
     const char *dot = strchr(p, '.');
     size_t n = dot ? (size_t)(dot - p) : strlen(p);
-    if (n == 0)
-      return NULL;
-    if (cJSON_IsObject(cur)) {
-      cur = member_n(cur, p, n);
-    } else if (cJSON_IsArray(cur)) {
-      long i = parse_index(p, n);
-      cur = i < 0 ? NULL : cJSON_GetArrayItem(cur, (int)i);
-    } else {
-      return NULL;
-    }
+    cur = path_step(cur, p, n);
     if (!dot)
       return cur;
     p = dot + 1;
   }
   return NULL;
+}
+
+/* The edit distance between 'a' and 'b' ignoring case (insertions, deletions, substitutions
+ * and swaps of two neighbours each count 1); words over 63 bytes count as far apart. */
+static size_t edit_distance(const char *a, const char *b) {
+  size_t na = strlen(a), nb = strlen(b);
+  if (na > 63 || nb > 63)
+    return SIZE_MAX;
+  size_t d[64][64];
+  for (size_t i = 0; i <= na; i++)
+    d[i][0] = i;
+  for (size_t j = 0; j <= nb; j++)
+    d[0][j] = j;
+  for (size_t i = 1; i <= na; i++)
+    for (size_t j = 1; j <= nb; j++) {
+      int ca = tolower((unsigned char)a[i - 1]), cb = tolower((unsigned char)b[j - 1]);
+      size_t best = d[i - 1][j - 1] + (ca != cb);
+      if (d[i - 1][j] + 1 < best)
+        best = d[i - 1][j] + 1;
+      if (d[i][j - 1] + 1 < best)
+        best = d[i][j - 1] + 1;
+      if (i > 1 && j > 1 && ca == tolower((unsigned char)b[j - 2]) &&
+          tolower((unsigned char)a[i - 2]) == cb && d[i - 2][j - 2] + 1 < best)
+        best = d[i - 2][j - 2] + 1;
+      d[i][j] = best;
+    }
+  return d[na][nb];
+}
+
+/* A suggestion being chosen: the nearest candidate so far to 'word'. */
+typedef struct suggestion {
+  const char *word, *best;
+  size_t distance;
+} suggestion_t;
+
+/* Keeps 'candidate' when it is nearer to the word than the best so far and near enough to be
+ * what was meant: at most a third of the longer word's letters differ ("fovy" for "fov_y"). */
+static void suggestion_consider(suggestion_t *s, const char *candidate) {
+  if (!candidate || !candidate[0])
+    return;
+  size_t d = edit_distance(s->word, candidate);
+  size_t longer = strlen(s->word) > strlen(candidate) ? strlen(s->word) : strlen(candidate);
+  if (d == SIZE_MAX || 3 * d > longer || d >= s->distance)
+    return;
+  s->best = candidate;
+  s->distance = d;
+}
+
+const char *sch_suggest_field(const sch_field_t *f, const char *word) {
+  suggestion_t s = {word, NULL, SIZE_MAX};
+  for (const sch_field_t *m = f && f->type == SCH_OBJECT ? f->fields : NULL; m && m->name; m++)
+    suggestion_consider(&s, m->name);
+  return s.best;
+}
+
+const char *sch_suggest_json(const cJSON *container, const char *word) {
+  suggestion_t s = {word, NULL, SIZE_MAX};
+  for (const cJSON *c = container ? container->child : NULL; c; c = c->next) {
+    if (cJSON_IsObject(container))
+      suggestion_consider(&s, c->string);
+    else if (cJSON_IsArray(container))
+      suggestion_consider(&s, cJSON_GetStringValue(cJSON_GetObjectItemCaseSensitive(c, "id")));
+  }
+  return s.best;
+}
+
+/* Appends '; did you mean "X"?' to 'buf' when 'best' is a suggestion. */
+static void append_suggestion(char *buf, size_t len, const char *best) {
+  size_t used = strlen(buf);
+  if (best && used < len)
+    snprintf(buf + used, len - used, "; did you mean \"%s\"?", best);
+}
+
+void sch_path_explain(cJSON *root, const char *path, char *buf, size_t len) {
+  char word[PATH_MAX_LEN], where[PATH_MAX_LEN];
+  cJSON *cur = root;
+  const char *p = path ? path : "";
+  for (;;) {
+    const char *dot = strchr(p, '.');
+    size_t n = dot ? (size_t)(dot - p) : strlen(p);
+    snprintf(word, sizeof word, "%.*s", (int)(n < sizeof word ? n : sizeof word - 1), p);
+    /* The path up to this component: where the search stopped. */
+    int upto = p > path ? (int)(p - path - 1) : 0;
+    if (upto)
+      snprintf(where, sizeof where, "%.*s", upto < PATH_MAX_LEN - 1 ? upto : PATH_MAX_LEN - 1,
+               path);
+    else
+      snprintf(where, sizeof where, "the document");
+    cJSON *next = path_step(cur, p, n);
+    if (!next) {
+      if (n == 0)
+        snprintf(buf, len, "an empty name after %s", where);
+      else if (cJSON_IsObject(cur)) {
+        snprintf(buf, len, "%s has no member \"%s\"", where, word);
+        append_suggestion(buf, len, sch_suggest_json(cur, word));
+      } else if (cJSON_IsArray(cur) && parse_index(p, n) >= 0)
+        snprintf(buf, len, "%s has %d item%s", where, cJSON_GetArraySize(cur),
+                 cJSON_GetArraySize(cur) == 1 ? "" : "s");
+      else if (cJSON_IsArray(cur)) {
+        snprintf(buf, len, "%s has no item with id \"%s\"", where, word);
+        append_suggestion(buf, len, sch_suggest_json(cur, word));
+      } else
+        snprintf(buf, len, "%s is %s, which has no members", where, json_kind(cur));
+      return;
+    }
+    if (!dot) {
+      snprintf(buf, len, "it exists");
+      return;
+    }
+    cur = next;
+    p = dot + 1;
+  }
 }
 
 const sch_field_t *sch_path_field(const sch_field_t *root, const char *path) {
@@ -572,7 +708,8 @@ const sch_field_t *sch_path_field(const sch_field_t *root, const char *path) {
           break;
         }
     } else if (cur->type == SCH_ARRAY) {
-      if (parse_index(p, n) >= 0)
+      /* An index, or the id of an item whose kind has one. */
+      if (parse_index(p, n) >= 0 || sch_field_member(cur->items, "id"))
         next = cur->items;
     }
     /* A vec3 component has no field description of its own, so such a path ends here. */
@@ -581,6 +718,13 @@ const sch_field_t *sch_path_field(const sch_field_t *root, const char *path) {
       return cur;
     p = dot + 1;
   }
+  return NULL;
+}
+
+const sch_field_t *sch_field_member(const sch_field_t *f, const char *name) {
+  for (const sch_field_t *m = f && f->type == SCH_OBJECT ? f->fields : NULL; m && m->name; m++)
+    if (strcmp(m->name, name) == 0)
+      return m;
   return NULL;
 }
 

@@ -118,10 +118,27 @@ int sch_enum_index(const sch_field_t *f, const cJSON *v);
  * -1 when either is missing. */
 int sch_member_enum(const sch_field_t *f, const cJSON *obj, const char *name);
 
-/* Follows a dotted path ("waves.0.a") inside 'root'; NULL if absent. Array indices are decimal. */
+/* Follows a dotted path ("waves.0.a", "objects.orb.scale") inside 'root'; NULL if absent. In an
+ * array a decimal component is an index (one spelling: no sign, no leading zero) and any other
+ * names the item whose member "id" is that string. */
 cJSON *sch_path_get(cJSON *root, const char *path);
-/* The field description at a dotted path, or NULL. */
+/* The item of array 'arr' whose member "id" is the string 'id' (not empty), or NULL. */
+cJSON *sch_item_by_id(const cJSON *arr, const char *id);
+/* Why sch_path_get finds nothing at 'path' in 'root', as a phrase for a message: 'camera has no
+ * member "fovy"; did you mean "fov_y"?', 'objects has 8 items', 'waves has no item with id
+ * "spak"; did you mean "spark"?'. */
+void sch_path_explain(cJSON *root, const char *path, char *buf, size_t len);
+/* The field description at a dotted path, or NULL; an array's items are reached by index, and by
+ * any other word when they have an "id" member. */
 const sch_field_t *sch_path_field(const sch_field_t *root, const char *path);
+/* The member 'name' of 'f' (an OBJECT), or NULL. */
+const sch_field_t *sch_field_member(const sch_field_t *f, const char *name);
+
+/* The name nearest to 'word' that it is likely a misspelling of ("fov_y" for "fovy"), or NULL:
+ * among the members 'f' (an OBJECT) describes, or the member names of JSON object 'container'
+ * or the ids of the items of JSON array 'container'. */
+const char *sch_suggest_field(const sch_field_t *f, const char *word);
+const char *sch_suggest_json(const cJSON *container, const char *word);
 
 /* Writes 'v' as the shortest decimal that reads back as the same double ("0.1", "500",
  * "16.000001"), for messages. */

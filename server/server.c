@@ -138,6 +138,7 @@ scene_entry_t *server_add_scene(server_t *s, const char *name, const char *prese
   }
   e->srv = s;
   e->scene = sc;
+  snprintf(sc->preset, sizeof sc->preset, "%s", preset ? preset : "");
   uv_timer_init(s->loop, &e->play);
   e->play.data = e;
   /* A preset saved while playing starts paused: play is always an explicit request. */

@@ -1,8 +1,9 @@
 /*
  * libFuzzer target for the scene model: the input is split at its first NUL into a dotted
- * path and a JSON text. The text is applied to a scene as a merge patch and, when a path is
- * given, set at that path; both must either succeed with a document that validates again, or
- * fail leaving the document exactly as it was. Build with -DVOLFX_FUZZ=ON and clang.
+ * path and a JSON text. The text is applied to a scene as a merge patch (an object), as a change
+ * list and as a JSON Patch (an array) and, when a path is given, set at that path; each must
+ * either succeed with a document that validates again, or fail leaving the document exactly as
+ * it was. Build with -DVOLFX_FUZZ=ON and clang.
  */
 #include <stdint.h>
 #include <stdlib.h>
@@ -15,13 +16,16 @@ static void check(int cond) {
     abort();
 }
 
-/* Applies 'op' (0: patch, 1: path) and checks atomicity. */
+/* Applies 'op' (0: patch, 1: path, 2: changes, 3: JSON Patch) and checks atomicity. */
 static void apply(scene_t *s, int op, const char *path, const cJSON *value) {
   char *before = cJSON_PrintUnformatted(s->doc);
   unsigned long version = s->version;
   render_scene_t *snap = s->snapshot;
   scene_error_t err;
-  int rc = op == 0 ? scene_patch(s, value, &err) : scene_set_path(s, path, value, &err);
+  int rc = op == 0   ? scene_patch(s, value, &err)
+           : op == 1 ? scene_set_path(s, path, value, &err)
+           : op == 2 ? scene_set_changes(s, value, &err)
+                     : scene_apply_ops(s, value, &err);
   char *after = cJSON_PrintUnformatted(s->doc);
   if (rc != 0) {
     check(strcmp(before, after) == 0);
@@ -67,6 +71,10 @@ int LLVMFuzzerTestOneInput(const uint8_t *data, size_t size) {
     return 0;
   if (cJSON_IsObject(v))
     apply(scene, 0, NULL, v);
+  if (cJSON_IsArray(v)) {
+    apply(scene, 2, NULL, v);
+    apply(scene, 3, NULL, v);
+  }
   if (path[0])
     apply(scene, 1, path, v);
   cJSON_Delete(v);

@@ -141,15 +141,22 @@ static void test_patch(void) {
   CHECK(old->camera.fov_y == 45.0f); /* The job's snapshot is untouched. */
   render_scene_unref(old);
 
-  /* Arrays are replaced whole. */
+  /* Items that all carry distinct ids merge into the items with those ids, or are appended. */
   CHECK(patch_text(s,
                    "{\"objects\": [{\"id\": \"a\", \"shape\": \"box\"}, {\"id\": \"b\", "
                    "\"shape\": \"sphere\", \"position\": [1, 2, 3]}]}",
                    &err) == 0);
   CHECK(cJSON_GetArraySize(sch_path_get(s->doc, "objects")) == 2);
   CHECK(patch_text(s, "{\"objects\": [{\"id\": \"c\", \"shape\": \"plane\"}]}", &err) == 0);
+  CHECK(cJSON_GetArraySize(sch_path_get(s->doc, "objects")) == 3);
+  CHECK(strcmp(str_at(s, "objects.2.id"), "c") == 0);
+  CHECK(patch_text(s, "{\"objects\": [{\"id\": \"b\", \"scale\": [2, 2, 2]}]}", &err) == 0);
+  CHECK(num_at(s, "objects.b.scale.0") == 2 && num_at(s, "objects.1.position.2") == 3);
+  CHECK(strcmp(str_at(s, "objects.b.shape"), "sphere") == 0);
+  /* Any other array is replaced whole. */
+  CHECK(patch_text(s, "{\"objects\": [{\"shape\": \"plane\"}]}", &err) == 0);
   CHECK(cJSON_GetArraySize(sch_path_get(s->doc, "objects")) == 1);
-  CHECK(strcmp(str_at(s, "objects.0.id"), "c") == 0);
+  CHECK(strcmp(str_at(s, "objects.0.id"), "") == 0);
   CHECK(s->snapshot->nobjects == 1 && s->snapshot->objects[0].shape == SHAPE_PLANE);
 
   /* null deletes, and the default comes back. */
@@ -204,8 +211,8 @@ static void test_refused(void) {
   expect_refused(s,
                  J("{\"objects\": [{\"shape\": \"box\"}, {\"shape\": \"box\"}, "
                    "{\"shape\": \"box\", \"colour\": [1, 0, 0]}]}"),
-                 PROTO_E_INVALID_PARAMS, "objects.2.colour", "objects.2: unknown member \"colour\"",
-                 __LINE__);
+                 PROTO_E_INVALID_PARAMS, "objects.2.colour",
+                 "objects.2: unknown member \"colour\"; did you mean \"color\"?", __LINE__);
   REFUSED(s, "{\"camera\": {\"near\": \"far\"}}", "camera.near");
   REFUSED(s, "{\"camera\": {\"fov_y\": true}}", "camera.fov_y");
   REFUSED(s, "{\"camera\": {\"eye\": [1, 2]}}", "camera.eye");
@@ -225,10 +232,11 @@ static void test_refused(void) {
           "objects.0.rotation.1");
   REFUSED(s, "{\"objects\": [{\"shape\": \"box\"}, 7]}", "objects.1");
   REFUSED(s, "{\"objects\": {\"0\": {\"shape\": \"box\"}}}", "objects");
+  /* An item with an id no item has is appended after "x". */
   REFUSED(s,
           "{\"objects\": [{\"shape\": \"box\", \"id\": "
           "\"0123456789012345678901234567890123456789012345678901234567890123\"}]}",
-          "objects.0.id");
+          "objects.1.id");
   REFUSED(s,
           "{\"objects\": [{\"shape\": \"box\", \"id\": \"t\"}, {\"shape\": \"box\"}, "
           "{\"shape\": \"box\", \"id\": \"t\"}]}",
@@ -357,6 +365,43 @@ static void test_set_path(void) {
   scene_destroy(s);
 }
 
+/* Change lists and JSON Patch: one version when every step and the result pass, none else. */
+static void test_change_lists(void) {
+  scene_t *s = new_scene();
+  scene_error_t err;
+  CHECK(patch_text(s, "{\"objects\": [{\"id\": \"orb\", \"shape\": \"sphere\"}]}", &err) == 0);
+  unsigned long v = s->version;
+  cJSON *changes = J("[{\"path\": \"camera.fov_y\", \"value\": 30}, {\"path\": "
+                     "\"objects.orb.scale\", \"value\": [2, 2, 2]}, {\"path\": \"camera\", "
+                     "\"patch\": {\"near\": 0.5}}]");
+  CHECK(scene_set_changes(s, changes, &err) == 0 && s->version == v + 1);
+  CHECK(num_at(s, "camera.fov_y") == 30 && num_at(s, "objects.0.scale.1") == 2 &&
+        num_at(s, "camera.near") == 0.5);
+  cJSON_Delete(changes);
+  changes = J("[{\"path\": \"camera.fov_y\", \"value\": 50}, {\"path\": \"camera.fovy\", "
+              "\"value\": 1}]");
+  CHECK(scene_set_changes(s, changes, &err) == -1 && strcmp(err.path, "camera.fovy") == 0 &&
+        strstr(err.message, "did you mean \"fov_y\"") != NULL);
+  CHECK(s->version == v + 1 && num_at(s, "camera.fov_y") == 30);
+  cJSON_Delete(changes);
+
+  cJSON *ops = J("[{\"op\": \"test\", \"path\": \"/camera/fov_y\", \"value\": 30}, {\"op\": "
+                 "\"replace\", \"path\": \"/objects/orb/id\", \"value\": \"ball\"}, {\"op\": "
+                 "\"copy\", \"from\": \"/objects/0\", \"path\": \"/objects/-\"}, {\"op\": "
+                 "\"replace\", \"path\": \"/objects/1/id\", \"value\": \"b~/\"}, {\"op\": "
+                 "\"move\", \"from\": \"/objects/b~0~1\", \"path\": \"/objects/0\"}]");
+  CHECK(scene_apply_ops(s, ops, &err) == 0 && s->version == v + 2);
+  CHECK(strcmp(str_at(s, "objects.0.id"), "b~/") == 0 &&
+        strcmp(str_at(s, "objects.1.id"), "ball") == 0);
+  cJSON_Delete(ops);
+  ops = J("[{\"op\": \"remove\", \"path\": \"/objects/ball\"}, {\"op\": \"test\", \"path\": "
+          "\"/camera/fov_y\", \"value\": 31}]");
+  CHECK(scene_apply_ops(s, ops, &err) == -1 && strcmp(err.path, "ops.1") == 0);
+  CHECK(s->version == v + 2 && cJSON_GetArraySize(sch_path_get(s->doc, "objects")) == 2);
+  cJSON_Delete(ops);
+  scene_destroy(s);
+}
+
 static void test_get(void) {
   scene_t *s = new_scene();
   scene_error_t err;
@@ -453,7 +498,9 @@ static void test_json_schema(void) {
   CHECK(f && strcmp(f->name, "scale") == 0 && f->type == SCH_VEC3);
   f = sch_path_field(&scene_schema, "camera.fov_y");
   CHECK(f && f->min == 1 && f->max == 179);
-  CHECK(sch_path_field(&scene_schema, "objects.x.scale") == NULL);
+  f = sch_path_field(&scene_schema, "objects.orb.scale"); /* Items with an id, by id. */
+  CHECK(f && strcmp(f->name, "scale") == 0);
+  CHECK(sch_path_field(&scene_schema, "fluid.emitters.x.position") == NULL);
   CHECK(sch_path_field(&scene_schema, "camera.zoom") == NULL);
   CHECK(sch_path_field(&scene_schema, "camera.eye.0") == NULL);
 }
@@ -703,6 +750,7 @@ int main(void) {
   test_patch();
   test_refused();
   test_set_path();
+  test_change_lists();
   test_get();
   test_json_schema();
   test_engine();

@@ -162,7 +162,7 @@ static void test_refused(void) {
   expect_refused(s, J("{\"waves\": [{\"direction\": [0, 0, 0]}]}"), "waves.0.direction",
                  "waves.0.direction: a direction cannot be the zero vector", __LINE__);
   expect_refused(s, J("{\"waves\": [{\"colour\": [1, 0, 0]}]}"), "waves.0.colour",
-                 "waves.0: unknown member \"colour\"", __LINE__);
+                 "waves.0: unknown member \"colour\"; did you mean \"color\"?", __LINE__);
   REFUSED(s, "{\"waves\": [{\"clamp\": 0}]}", "waves.0.clamp");
   REFUSED(s, "{\"waves\": [{\"a\": -0.5}]}", "waves.0.a");
   REFUSED(s, "{\"waves\": [{\"b\": 2e6}]}", "waves.0.b");

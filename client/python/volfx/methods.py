@@ -95,6 +95,16 @@ class Methods:
         """Applies an RFC 7386 merge patch atomically (scene.set); returns ``{"version": n}``."""
         return self._request("scene.set", dict(_given(scene=scene), patch=patch))
 
+    def changes(self, changes, scene=None, tag=None):
+        """Applies ``[{"path", "value"} or {"path", "patch"}, ...]`` in order as one version, or
+        nothing (scene.set); returns ``{"version": n}``."""
+        return self._request("scene.set", dict(_given(scene=scene, tag=tag), changes=list(changes)))
+
+    def json_patch(self, ops, scene=None, tag=None):
+        """Applies an RFC 6902 JSON Patch (a list of operations) as one version, or nothing
+        (scene.set); returns ``{"version": n}``."""
+        return self._request("scene.set", dict(_given(scene=scene, tag=tag), ops=list(ops)))
+
     @_wraps("scene.save")
     def save(self, file, scene=None):
         """Writes a snapshot to ``file`` under the server's data directory."""
