@@ -10,6 +10,7 @@
 #include <math.h>
 
 #include "server.h"
+#include "render_job.h"
 #include "worker.h"
 
 #define FRAMES_MAX_PER_CONN 16
@@ -21,105 +22,9 @@ void frames_register(server_t *s);
 /* The scene was deleted: ends its subscriptions with a 'frames.ended' notification. */
 void frames_scene_deleted(server_t *s, const char *scene);
 
-/*
- * Fills 'j' (scene reference, params, camera) from validated render params, shared by render
- * and frames.subscribe. On error answers nothing and returns the PROTO_E_* code with 'path'
- * and 'msg' filled.
- */
-int render_job_from_params(server_t *s, scene_entry_t *e, const cJSON *params, job_t *j, char *path,
-                           size_t pathlen, char *msg, size_t msglen);
-/* A bound on the bytes the answer to render job 'j' writes (its line and frame; 'base64':
- * inline). */
-size_t render_answer_bound(const job_t *j, int base64);
-/* Records a finished job's passes and frame in the server's stats. */
-void render_job_stats(server_t *s, const job_t *j);
-/* The work_ms object of a finished job: each pass, "queue" and "total". */
-cJSON *render_job_times(const job_t *j);
-/* Adds a finished job's sync members to 'o': "version" (the scene's), "render_start" and
- * "encode_end" (render_clock_ms of when the worker took the job and when its bytes were done). */
-void render_job_sync(cJSON *o, const job_t *j);
-/* A now_ns() time as milliseconds of CLOCK_REALTIME since the Unix epoch, to 0.1 ms, so that a
- * client on the same host can set it beside its own clock. */
-double render_clock_ms(uint64_t mono_ns);
-
 /* A call of a METHOD_SCENE_TAG method succeeded: its 'tag' param, if any, becomes its scene's
  * newest tag, echoed by the frames that show the scene from now on, and the scene's
  * subscriptions that last ticked an interval ago or more tick at once. */
 void frames_scene_changed(call_t *call);
-
-/* The params that describe one frame, shared by render, frames.subscribe and render.sequence. */
-#define RENDER_PARAMS_FRAME                                                                        \
-  PARAM_SCENE,                                                                                     \
-      {.name = "width",                                                                            \
-       .type = SCH_INTEGER,                                                                        \
-       .desc = "Frame width; at most limits.frame_side (larger is -32003).",                       \
-       .unit = "pixels",                                                                           \
-       .min = 1,                                                                                   \
-       .max = INFINITY,                                                                            \
-       .def = 512},                                                                                \
-      {.name = "height",                                                                           \
-       .type = SCH_INTEGER,                                                                        \
-       .desc = "Frame height; at most limits.frame_side (larger is -32003).",                      \
-       .unit = "pixels",                                                                           \
-       .min = 1,                                                                                   \
-       .max = INFINITY,                                                                            \
-       .def = 512},                                                                                \
-      {.name = "format",                                                                           \
-       .type = SCH_ENUM,                                                                           \
-       .desc = "png, rgba8 or rgbaf32 for the beauty aov; f32 for depth and wave_h.",              \
-       .enum_values = render_format_names,                                                         \
-       .def_str = "png"},                                                                          \
-      {.name = "aov",                                                                              \
-       .type = SCH_ENUM,                                                                           \
-       .desc = "beauty, depth (f32 distance along the ray, +inf for none) or wave_h.",             \
-       .enum_values = render_aov_names,                                                            \
-       .def_str = "beauty"},                                                                       \
-      {.name = "layers",                                                                           \
-       .type = SCH_ARRAY,                                                                          \
-       .desc = "Effects to draw; default all.",                                                    \
-       .max = RENDER_LAYER_COUNT,                                                                  \
-       .items = &render_layer_item,                                                                \
-       .flags = SCH_NO_DEFAULT},                                                                   \
-      {.name = "camera",                                                                           \
-       .type = SCH_ANY,                                                                            \
-       .desc = "Members of the scene camera overriding it for this frame.",                        \
-       .flags = SCH_NO_DEFAULT},                                                                   \
-      {.name = "background",                                                                       \
-       .type = SCH_ENUM,                                                                           \
-       .desc = "scene: the scene's background colour; transparent: transparent black, for "        \
-               "compositing (colours premultiplied by alpha). Default: transparent when the "      \
-               "scene's render.transparent_background is true, else scene.",                       \
-       .enum_values = render_backgrounds,                                                          \
-       .flags = SCH_NO_DEFAULT},                                                                   \
-      {.name = "depth",                                                                            \
-       .type = SCH_OBJECT,                                                                         \
-       .desc = "The game's depth buffer {width, height, data, convention, near, far, reversed}, "  \
-               "drawn with the frame's camera: effects stop at it as at the objects (see "         \
-               "Compositing).",                                                                    \
-       .fields = render_depth_fields,                                                              \
-       .flags = SCH_NO_DEFAULT},                                                                   \
-  {                                                                                                \
-    .name = "png_level", .type = SCH_INTEGER,                                                      \
-    .desc = "zlib level for png, or -1 for the fast default (level 1, no filter).", .min = -1,     \
-    .max = 9, .def = -1                                                                            \
-  }
-
-/* The params shared by render and frames.subscribe, ended by {0}: a frame's, and how its
- * bytes travel. */
-#define RENDER_PARAMS_COMMON                                                                       \
-  RENDER_PARAMS_FRAME, {                                                                           \
-    .name = "encoding", .type = SCH_ENUM,                                                          \
-    .desc = "binary: an attachment after the line; base64: inline in 'data'.",                     \
-    .enum_values = render_encodings, .def_str = "binary"                                           \
-  }
-
-extern const char *const render_encodings[];
-extern const char *const render_backgrounds[];
-extern const sch_field_t render_depth_fields[];
-
-/* Drops what a render job made by render_job_from_params holds (its scene reference and depth
- * buffer) when it will not be submitted. */
-void render_job_release(job_t *j);
-extern const sch_field_t render_layer_item;
 
 #endif

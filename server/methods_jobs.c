@@ -34,7 +34,7 @@
 #include "datapath.h"
 #include "dispatch.h"
 #include "files.h"
-#include "frames.h"
+#include "render_job.h"
 #include "jobs.h"
 #include "log.h"
 #include "reserve.h"
