@@ -176,4 +176,20 @@ cJSON *proto_bake_key(const cJSON *doc);
 /* Whether documents 'a' and 'b' have equal keys. */
 int proto_bake_same(const cJSON *a, const cJSON *b);
 
+/*
+ * WebSocket text messages as request lines. A message is one request (or batch) and may hold
+ * the line breaks JSON allows between tokens; the connection's reader splits on '\n', so each
+ * fragment is copied with those breaks made spaces, and a break inside a string (which JSON
+ * forbids there) made the control byte 0x1f, which proto_parse refuses as it would the raw
+ * break. The state carries over fragments of one message; proto_ws_text_end resets it.
+ */
+typedef struct proto_ws_text {
+  int in_string; /* The message so far ends inside a JSON string, */
+  int escaped;   /* after a backslash. */
+} proto_ws_text_t;
+/* Copies the 'n' bytes at 'in' to 'out' (n bytes), converted as above. */
+void proto_ws_text_feed(proto_ws_text_t *st, const unsigned char *in, size_t n, char *out);
+/* The message ended: the next byte starts a new one. */
+void proto_ws_text_end(proto_ws_text_t *st);
+
 #endif

@@ -11,9 +11,9 @@
  * latest-wins see the same numbers as for a TCP socket. Reading pauses with libwebsockets' rx
  * flow control.
  *
- * A message becomes one line for the connection's reader: the line breaks JSON allows between
- * tokens become spaces, and one inside a string (which JSON forbids there) a control byte that
- * the parser refuses as it would the raw line break.
+ * A message becomes one line for the connection's reader (protocol/ws_text.c): the line breaks
+ * JSON allows between tokens become spaces, and one inside a string (which JSON forbids there)
+ * a control byte that the parser refuses as it would the raw line break.
  */
 #include <stdlib.h>
 #include <string.h>
@@ -46,8 +46,7 @@ typedef struct ws_link {
   ws_out_t *head, *tail;
   size_t queued;          /* Bytes of the queue not yet handed to libwebsockets. */
   int closing;            /* The connection closed: close the WebSocket. */
-  int in_string;          /* The message read so far ends inside a JSON string, */
-  int escaped;            /* after a backslash. */
+  proto_ws_text_t text;   /* Where the message read so far stands (protocol/ws_text.c). */
   unsigned char *scratch; /* LWS_PRE + WS_CHUNK bytes to write from. */
 } ws_link_t;
 
@@ -182,24 +181,13 @@ static void link_received(ws_link_t *link, const unsigned char *in, size_t len, 
   char buf[4096];
   while (len > 0 && !link->closing) {
     size_t n = len < sizeof buf ? len : sizeof buf;
-    for (size_t i = 0; i < n; i++) {
-      unsigned char ch = in[i];
-      if (link->escaped)
-        link->escaped = 0;
-      else if (link->in_string && ch == '\\')
-        link->escaped = 1;
-      else if (ch == '"')
-        link->in_string = !link->in_string;
-      else if (ch == '\n' || ch == '\r')
-        ch = link->in_string ? 0x1f : ' ';
-      buf[i] = (char)ch;
-    }
+    proto_ws_text_feed(&link->text, in, n, buf);
     conn_received(link->conn, buf, n);
     in += n;
     len -= n;
   }
   if (last) {
-    link->in_string = link->escaped = 0;
+    proto_ws_text_end(&link->text);
     if (!link->closing)
       conn_received(link->conn, "\n", 1);
   }

@@ -1156,6 +1156,41 @@ static void test_base64(void) {
   CHECK(proto_b64_decoded_max(8) == 6);
 }
 
+/* WebSocket messages as lines: breaks between tokens become spaces, breaks in strings 0x1f
+ * (also right after a backslash, where a kept break would split the message in two), and the
+ * state carries across fragments but not across messages. */
+static void test_ws_text(void) {
+  static const struct {
+    const char *in, *out;
+  } cases[] = {
+      {"{\"a\":\n1}", "{\"a\": 1}"},  {"[1,\r\n2]", "[1,  2]"},
+      {"\"x\ny\"", "\"x\x1fy\""},     {"\"x\\\ny\"", "\"x\\\x1fy\""},
+      {"\"\\\"\n\"", "\"\\\"\x1f\""}, {"[\"a\", \n \"b\"]", "[\"a\",   \"b\"]"},
+  };
+  for (size_t k = 0; k < sizeof cases / sizeof cases[0]; k++) {
+    size_t n = strlen(cases[k].in);
+    /* Byte by byte, so that the state crosses every fragment boundary. */
+    proto_ws_text_t st = {0};
+    char out[64] = {0};
+    for (size_t i = 0; i < n; i++)
+      proto_ws_text_feed(&st, (const unsigned char *)cases[k].in + i, 1, out + i);
+    proto_ws_text_end(&st);
+    CHECK_STR(out, cases[k].out);
+    CHECK(st.in_string == 0 && st.escaped == 0);
+    char why[128];
+    cJSON *v = proto_parse(out, n, why, sizeof why);
+    CHECK((v != NULL) == (strchr(cases[k].out, 0x1f) == NULL));
+    cJSON_Delete(v);
+  }
+  /* A message left inside a string does not carry into the next. */
+  proto_ws_text_t st = {0};
+  char out[8];
+  proto_ws_text_feed(&st, (const unsigned char *)"\"ab", 3, out);
+  proto_ws_text_end(&st);
+  proto_ws_text_feed(&st, (const unsigned char *)"\n", 1, out);
+  CHECK(out[0] == ' ');
+}
+
 int main(void) {
   test_errors();
   test_limits_and_formats();
@@ -1172,6 +1207,7 @@ int main(void) {
   test_request_check();
   test_builders();
   test_base64();
+  test_ws_text();
 
   printf("test_protocol: %d checks, %d failed\n", checks, failures);
   return failures == 0 ? 0 : 1;
