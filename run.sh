@@ -13,11 +13,12 @@ cd "$(dirname "$0")"
 # which check deploy/volfxd.service and deploy/volfx.sysusers.conf (no systemd needs to run).
 # libwebsockets-dev and libwebsockets-evlib-uv: the --http viewer on volfxd's libuv loop;
 # chromium, chromium-driver and python3-selenium: the viewer's test in a headless browser;
-# python3-pytest: the test of volfx.testing's pytest plugin.
+# python3-pytest: the test of volfx.testing's pytest plugin; libturbojpeg0-dev and libwebp-dev:
+# the jpeg and webp frame formats.
 packages=(build-essential cmake pkg-config libuv1-dev libcjson-dev libpng-dev zlib1g-dev
           ocl-icd-opencl-dev opencl-headers pocl-opencl-icd python3 slurm-wlm munge
           libsystemd-dev systemd libwebsockets-dev libwebsockets-evlib-uv chromium
-          chromium-driver python3-selenium python3-pytest)
+          chromium-driver python3-selenium python3-pytest libturbojpeg0-dev libwebp-dev)
 
 install_missing() {
   local missing=()

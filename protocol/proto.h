@@ -59,7 +59,9 @@ void proto_limits_default(proto_limits_t *l);
   X(RGBA8, "rgba8")     /* Raw 8-bit RGBA, rows top to bottom. */                                  \
   X(RGBAF32, "rgbaf32") /* Raw linear float RGBA before tone mapping, little-endian. */            \
   X(F32, "f32")         /* One little-endian float per pixel or element. */                        \
-  X(U8, "u8")           /* One byte per element. */
+  X(U8, "u8")           /* One byte per element. */                                                \
+  X(JPEG, "jpeg")       /* 8-bit RGB JPEG file (no alpha). */                                      \
+  X(WEBP, "webp")       /* 8-bit RGBA WebP file, lossy or lossless. */
 
 #define PROTO_FORMAT_ENUM(id, name) PROTO_FMT_##id,
 typedef enum { PROTO_FORMATS(PROTO_FORMAT_ENUM) PROTO_FMT_COUNT } proto_format_t;

@@ -106,6 +106,7 @@ typedef struct render_params {
   aov_t aov;
   unsigned layers;         /* LAYER_* bits. */
   int png_level;           /* zlib level 0-9 for PNG; -1 picks the fast default. */
+  int quality;             /* 1-100 for the lossy formats (jpeg, webp; 100 is lossless webp). */
   const rcamera_t *camera; /* Overrides the scene's camera when not NULL. */
   int march_samples;       /* 0: the waves' exact closed form. N > 0: a ray march of N samples
                               per wave and ray instead, for comparisons (tests/bench). */
@@ -161,7 +162,8 @@ typedef enum {
 } render_source_t;
 
 /* Encodes the pixels of a frame into a malloc'd '*out' of '*nout' bytes; 'level' is the
- * request's png_level. Returns 0, or -1 with nothing allocated. */
+ * request's png_level, or its quality for a format whose entry says so. Returns 0, or -1 with
+ * nothing allocated. */
 typedef int (*render_encode_fn)(const uint8_t *pixels, uint32_t width, uint32_t height, int level,
                                 unsigned char **out, size_t *nout);
 
@@ -171,7 +173,9 @@ typedef struct render_format {
   unsigned aovs;     /* Bit 1 << aov for each aov the format serves. */
   size_t bytes_per_pixel; /* Of the pixels before encoding. */
   render_source_t source;
-  render_encode_fn encode;                                  /* NULL: the pixels are the bytes. */
+  render_encode_fn encode; /* NULL: the pixels are the bytes. */
+  int quality; /* 1: 'encode' takes the request's quality as its level, not png_level. */
+  int alpha;   /* 1: the format carries alpha (a transparent background can be asked). */
   size_t (*encoded_bound)(uint32_t width, uint32_t height); /* Most bytes 'encode' writes. */
   const char *mime;
 } render_format_t;
@@ -195,6 +199,14 @@ size_t render_format_bound(const render_format_t *f, uint32_t width, uint32_t he
 int render_output_encode(const render_format_t *f, const render_params_t *p, render_output_t *out,
                          char *err, size_t errlen);
 
+/* encode_jpeg.c: 8-bit RGBA rows as a JPEG of quality 'level' (1-100), alpha dropped. */
+int encode_jpeg(const uint8_t *rgba, uint32_t width, uint32_t height, int level,
+                unsigned char **out, size_t *nout);
+size_t encode_jpeg_bound(uint32_t width, uint32_t height);
+/* encode_webp.c: 8-bit RGBA rows as a WebP of quality 'level' (1-99 lossy, 100 lossless). */
+int encode_webp(const uint8_t *rgba, uint32_t width, uint32_t height, int level,
+                unsigned char **out, size_t *nout);
+size_t encode_webp_bound(uint32_t width, uint32_t height);
 /* encode_png.c: 8-bit RGBA rows as a PNG; 'level' -1 is the fast default (zlib 1, no filter). */
 int encode_png(const uint8_t *rgba, uint32_t width, uint32_t height, int level, unsigned char **out,
                size_t *nout);

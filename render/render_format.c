@@ -3,7 +3,7 @@
  * it serves, the bytes a pixel takes before encoding, the buffer those bytes come from, its
  * encoder (NULL for raw pixels) and its media type. The render method, the worker, sequence
  * jobs and frame subscriptions ask this table; a new format is an entry here and its encoder
- * in a file of its own (encode_png.c).
+ * in a file of its own (encode_png.c, encode_jpeg.c, encode_webp.c).
  */
 #include "render_internal.h"
 
@@ -19,18 +19,21 @@ const render_format_t render_format_table[] = {{.name = "png",
                                                 .source = RENDER_SOURCE_DISPLAY,
                                                 .encode = encode_png,
                                                 .encoded_bound = encode_png_bound,
+                                                .alpha = 1,
                                                 .mime = "image/png"},
                                                {.name = "rgba8",
                                                 .id = PROTO_FMT_RGBA8,
                                                 .aovs = AOV_BIT(AOV_BEAUTY),
                                                 .bytes_per_pixel = 4,
                                                 .source = RENDER_SOURCE_DISPLAY,
+                                                .alpha = 1,
                                                 .mime = "application/octet-stream"},
                                                {.name = "rgbaf32",
                                                 .id = PROTO_FMT_RGBAF32,
                                                 .aovs = AOV_BIT(AOV_BEAUTY),
                                                 .bytes_per_pixel = 4 * sizeof(float),
                                                 .source = RENDER_SOURCE_LINEAR,
+                                                .alpha = 1,
                                                 .mime = "application/octet-stream"},
                                                {.name = "f32",
                                                 .id = PROTO_FMT_F32,
@@ -38,10 +41,29 @@ const render_format_t render_format_table[] = {{.name = "png",
                                                 .bytes_per_pixel = sizeof(float),
                                                 .source = RENDER_SOURCE_AOV,
                                                 .mime = "application/octet-stream"},
+                                               {.name = "jpeg",
+                                                .id = PROTO_FMT_JPEG,
+                                                .aovs = AOV_BIT(AOV_BEAUTY),
+                                                .bytes_per_pixel = 4,
+                                                .source = RENDER_SOURCE_DISPLAY,
+                                                .encode = encode_jpeg,
+                                                .encoded_bound = encode_jpeg_bound,
+                                                .quality = 1,
+                                                .mime = "image/jpeg"},
+                                               {.name = "webp",
+                                                .id = PROTO_FMT_WEBP,
+                                                .aovs = AOV_BIT(AOV_BEAUTY),
+                                                .bytes_per_pixel = 4,
+                                                .source = RENDER_SOURCE_DISPLAY,
+                                                .encode = encode_webp,
+                                                .encoded_bound = encode_webp_bound,
+                                                .quality = 1,
+                                                .alpha = 1,
+                                                .mime = "image/webp"},
                                                {0}};
 
 /* The names of the table's formats, in its order, for the params' schema. */
-const char *const render_format_names[] = {"png", "rgba8", "rgbaf32", "f32", NULL};
+const char *const render_format_names[] = {"png", "rgba8", "rgbaf32", "f32", "jpeg", "webp", NULL};
 
 const render_format_t *render_format_get(proto_format_t id) {
   for (const render_format_t *f = render_format_table; f->name; f++)
@@ -125,7 +147,8 @@ int render_output_encode(const render_format_t *f, const render_params_t *p, ren
   double t0 = now_ms();
   unsigned char *bytes = NULL;
   size_t n = 0;
-  if (f->encode(out->bytes, p->width, p->height, p->png_level, &bytes, &n) != 0) {
+  int level = f->quality ? p->quality : p->png_level;
+  if (f->encode(out->bytes, p->width, p->height, level, &bytes, &n) != 0) {
     set_err(err, errlen, "%s encoding of a %ux%u frame failed", f->name, p->width, p->height);
     free(out->bytes);
     out->bytes = NULL;

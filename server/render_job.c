@@ -228,6 +228,7 @@ int render_job_from_params(server_t *s, scene_entry_t *e, const cJSON *params, j
     j->params.layers = LAYER_ALL;
   }
   j->params.png_level = (int)cJSON_GetObjectItem(params, "png_level")->valuedouble;
+  j->params.quality = (int)cJSON_GetObjectItem(params, "quality")->valuedouble;
   const cJSON *cam = cJSON_GetObjectItem(params, "camera");
   if (cam) {
     int rc = camera_override(e, cam, &j->camera, path, pathlen, msg, msglen);
@@ -239,6 +240,15 @@ int render_job_from_params(server_t *s, scene_entry_t *e, const cJSON *params, j
   if (bg)
     j->params.background =
         strcmp(bg->valuestring, "transparent") == 0 ? RENDER_BG_TRANSPARENT : RENDER_BG_SCENE;
+  const render_format_t *f = render_format_get(j->params.format);
+  if (j->params.background == RENDER_BG_TRANSPARENT && bg && !f->alpha) {
+    snprintf(path, pathlen, "background");
+    snprintf(msg, msglen,
+             "invalid params: format '%s' has no alpha channel for a transparent background: "
+             "ask for png or webp",
+             f->name);
+    return PROTO_E_INVALID_PARAMS;
+  }
   const cJSON *depth = cJSON_GetObjectItem(params, "depth");
   if (depth) {
     int rc = depth_from_param(depth, j, j->has_camera ? &j->camera : &e->scene->snapshot->camera,

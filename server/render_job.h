@@ -52,7 +52,8 @@ double render_clock_ms(uint64_t mono_ns);
        .def = 512},                                                                                \
       {.name = "format",                                                                           \
        .type = SCH_ENUM,                                                                           \
-       .desc = "png, rgba8 or rgbaf32 for the beauty aov; f32 for depth and wave_h.",              \
+       .desc = "png, rgba8, rgbaf32, jpeg or webp for the beauty aov; f32 for depth and "          \
+               "wave_h.",                                                                          \
        .enum_values = render_format_names,                                                         \
        .def_str = "png"},                                                                          \
       {.name = "aov",                                                                              \
@@ -84,10 +85,17 @@ double render_clock_ms(uint64_t mono_ns);
                "Compositing).",                                                                    \
        .fields = render_depth_fields,                                                              \
        .flags = SCH_NO_DEFAULT},                                                                   \
+      {.name = "png_level",                                                                        \
+       .type = SCH_INTEGER,                                                                        \
+       .desc = "zlib level for png, or -1 for the fast default (level 1, no filter).",             \
+       .min = -1,                                                                                  \
+       .max = 9,                                                                                   \
+       .def = -1},                                                                                 \
   {                                                                                                \
-    .name = "png_level", .type = SCH_INTEGER,                                                      \
-    .desc = "zlib level for png, or -1 for the fast default (level 1, no filter).", .min = -1,     \
-    .max = 9, .def = -1                                                                            \
+    .name = "quality", .type = SCH_INTEGER,                                                        \
+    .desc = "jpeg and webp: 1 (smallest) to 100; webp at 100 is lossless. Other formats ignore "   \
+            "it.",                                                                                 \
+    .min = 1, .max = 100, .def = 85                                                                \
   }
 
 /* The params shared by render and frames.subscribe, ended by {0}: a frame's, and how its

@@ -92,7 +92,7 @@ static void test_limits_and_formats(void) {
   CHECK(l.connections == 256);
   CHECK(l.output_bytes == (size_t)64 << 20);
 
-  static const char *const names[] = {"png", "rgba8", "rgbaf32", "f32", "u8"};
+  static const char *const names[] = {"png", "rgba8", "rgbaf32", "f32", "u8", "jpeg", "webp"};
   for (int f = 0; f < PROTO_FMT_COUNT; f++) {
     CHECK_STR(proto_format_name((proto_format_t)f), names[f]);
     CHECK(proto_format_parse(names[f]) == f);
