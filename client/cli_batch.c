@@ -41,6 +41,7 @@ enum {
   A_LAYERS,
   A_CAMERA,
   A_PNG_LEVEL,
+  A_QUALITY,
   A_ANTIALIAS,
   A_PRESETS,
   A_DEVICE,
@@ -60,15 +61,17 @@ static const struct {
     [A_FORMAT] = {"--format", "-f", 0},       [A_AOV] = {"--aov", NULL, 0},
     [A_LAYERS] = {"--layers", NULL, 0},       [A_CAMERA] = {"--camera", NULL, 0},
     [A_PNG_LEVEL] = {"--png-level", NULL, 0}, [A_ANTIALIAS] = {"--antialias", NULL, 0},
-    [A_PRESETS] = {"--presets", NULL, 0},     [A_DEVICE] = {"--device", NULL, 0},
-    [A_OVERWRITE] = {"--overwrite", NULL, 1}, [A_VERBOSE] = {"--verbose", "-v", 1},
+    [A_QUALITY] = {"--quality", "-q", 0},     [A_PRESETS] = {"--presets", NULL, 0},
+    [A_DEVICE] = {"--device", NULL, 0},       [A_OVERWRITE] = {"--overwrite", NULL, 1},
+    [A_VERBOSE] = {"--verbose", "-v", 1},
 };
 
 #define BIT(a) (1u << (a))
 #define BATCH_OPTS                                                                                 \
   (BIT(A_FIRST) | BIT(A_LAST) | BIT(A_STEP) | BIT(A_OUT) | BIT(A_BAKE) | BIT(A_WIDTH) |            \
    BIT(A_HEIGHT) | BIT(A_FORMAT) | BIT(A_AOV) | BIT(A_LAYERS) | BIT(A_CAMERA) | BIT(A_PNG_LEVEL) | \
-   BIT(A_ANTIALIAS) | BIT(A_PRESETS) | BIT(A_DEVICE) | BIT(A_OVERWRITE) | BIT(A_VERBOSE))
+   BIT(A_QUALITY) | BIT(A_ANTIALIAS) | BIT(A_PRESETS) | BIT(A_DEVICE) | BIT(A_OVERWRITE) |         \
+   BIT(A_VERBOSE))
 #define BAKE_OPTS                                                                                  \
   (BIT(A_LAST) | BIT(A_EVERY) | BIT(A_OUT) | BIT(A_PRESETS) | BIT(A_DEVICE) | BIT(A_VERBOSE))
 
@@ -373,14 +376,14 @@ static int batch_options(farm_t *f, batch_t *b, const char *val[A_COUNT]) {
   }
   static const struct {
     const char *name;
-    unsigned bytes; /* Per pixel; 0 for PNG. */
-  } formats[] = {{"png", 0}, {"rgba8", 4}, {"rgbaf32", 16}, {"f32", 4}};
-  size_t k = 0;
-  while (k < 4 && strcmp(format, formats[k].name) != 0) {
+    unsigned bytes; /* Per pixel; 0 for an encoded format. */
+  } formats[] = {{"png", 0}, {"rgba8", 4}, {"rgbaf32", 16}, {"f32", 4}, {"jpeg", 0}, {"webp", 0}};
+  size_t k = 0, nformats = sizeof formats / sizeof formats[0];
+  while (k < nformats && strcmp(format, formats[k].name) != 0) {
     k++;
   }
-  if (k == 4) {
-    return usage(f, "bad --format '%s' (png, rgba8, rgbaf32 or f32)", format);
+  if (k == nformats) {
+    return usage(f, "bad --format '%s' (png, rgba8, rgbaf32, f32, jpeg or webp)", format);
   }
   b->raw_bytes = formats[k].bytes * w * h;
   b->render = farm_main_params();
@@ -414,6 +417,13 @@ static int batch_options(farm_t *f, batch_t *b, const char *val[A_COUNT]) {
       return usage(f, "bad --png-level '%s' (-1 to 9)", val[A_PNG_LEVEL]);
     }
     cJSON_AddNumberToObject(b->render, "png_level", minus ? -1 : (double)png_level);
+  }
+  if (val[A_QUALITY] != NULL) {
+    uint64_t quality = 0;
+    if (!farm_parse_u64(val[A_QUALITY], 1, 100, &quality)) {
+      return usage(f, "bad --quality '%s' (1 to 100, for jpeg and webp)", val[A_QUALITY]);
+    }
+    cJSON_AddNumberToObject(b->render, "quality", (double)quality);
   }
   b->overwrite = val[A_OVERWRITE] != NULL;
   return 0;

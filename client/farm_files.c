@@ -220,16 +220,34 @@ int farm_write_atomic(const char *path, const void *data, size_t n, mode_t mode,
 }
 
 /*
+ * 1 when a file of 'size' bytes that starts with 'head' (12 bytes) and ends with 'tail' (the
+ * last 12) is a whole encoded frame: a PNG from its signature to its IEND chunk, a JPEG from its
+ * start to its end marker, or a WebP whose RIFF size is the file's.
+ */
+static int encoded_whole(const unsigned char *head, const unsigned char *tail, size_t size) {
+  if (size < 12 + 12)
+    return 0;
+  if (memcmp(head, png_signature, sizeof(png_signature)) == 0)
+    return memcmp(tail, png_iend, sizeof(png_iend)) == 0;
+  if (head[0] == 0xff && head[1] == 0xd8 && head[2] == 0xff)
+    return tail[10] == 0xff && tail[11] == 0xd9;
+  if (memcmp(head, "RIFF", 4) == 0 && memcmp(head + 8, "WEBP", 4) == 0) {
+    uint64_t riff = (uint64_t)head[4] | (uint64_t)head[5] << 8 | (uint64_t)head[6] << 16 |
+                    (uint64_t)head[7] << 24;
+    return riff + 8 == size;
+  }
+  return 0;
+}
+
+/*
  * 1 when 'n' bytes at 'data' are a whole frame: exactly 'raw_bytes' of a raw format, or (with
- * 'raw_bytes' 0) a PNG from its signature to its IEND chunk.
+ * 'raw_bytes' 0) a whole PNG, JPEG or WebP.
  */
 int farm_bytes_whole(const unsigned char *data, size_t n, uint64_t raw_bytes) {
   if (raw_bytes > 0) {
     return n == raw_bytes;
   }
-  return n >= sizeof(png_signature) + sizeof(png_iend) &&
-         memcmp(data, png_signature, sizeof(png_signature)) == 0 &&
-         memcmp(data + n - sizeof(png_iend), png_iend, sizeof(png_iend)) == 0;
+  return n >= 24 && encoded_whole(data, data + n - 12, n);
 }
 
 /* farm_bytes_whole() for the file at 'path'; 0 when there is none. */
@@ -242,14 +260,13 @@ int farm_file_whole(const char *path, uint64_t raw_bytes) {
   int whole = 0;
   if (fstat(fd, &st) == 0 && S_ISREG(st.st_mode)) {
     size_t size = (size_t)st.st_size;
-    unsigned char head[8], tail[12];
+    unsigned char head[12], tail[12];
     if (raw_bytes > 0) {
       whole = (uint64_t)st.st_size == raw_bytes;
     } else if (size >= sizeof(head) + sizeof(tail) &&
                pread(fd, head, sizeof(head), 0) == (ssize_t)sizeof(head) &&
                pread(fd, tail, sizeof(tail), st.st_size - 12) == (ssize_t)sizeof(tail)) {
-      whole = memcmp(head, png_signature, sizeof(head)) == 0 &&
-              memcmp(tail, png_iend, sizeof(tail)) == 0;
+      whole = encoded_whole(head, tail, size);
     }
   }
   close(fd);

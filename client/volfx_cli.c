@@ -50,9 +50,11 @@ static const char usage_text[] =
     "  play [RATE]                   sim.play at RATE steps per second (server default 60)\n"
     "  pause                         sim.pause\n"
     "  render -o FILE [-W W] [-H H] [--format F] [--aov A] [--layers a,b] [--camera JSON]\n"
-    "         [--encoding binary|base64]\n"
+    "         [--encoding binary|base64] [--quality Q]\n"
     "                                render one frame into FILE (- for stdout) and print a\n"
-    "                                summary with work_ms; --aov depth|wave_h defaults to f32\n"
+    "                                summary with work_ms; --aov depth|wave_h defaults to f32;\n"
+    "                                F: png, rgba8, rgbaf32, jpeg, webp (Q 1-100; webp 100 is\n"
+    "                                lossless), f32\n"
     "  watch [--fps F] [-W W] [-H H] [--format F] [--aov A] [--layers a,b] [--count N]\n"
     "        [-o PATTERN] [--seq] [-v]\n"
     "                                frames.subscribe; writes each frame to PATTERN with %d or\n"
@@ -90,7 +92,7 @@ static const char usage_text[] =
     "$VOLFX_VOLFXD, and always stops it; the global options do not apply to them):\n"
     "  batch SCENE -s FIRST -e LAST [-j STEP] -o PATTERN [--bake DIR] [-W W] [-H H]\n"
     "        [--format F] [--aov A] [--layers a,b] [--camera JSON] [--antialias N]\n"
-    "        [--png-level L] [--overwrite] [--presets DIR] [--device D] [-v]\n"
+    "        [--png-level L] [--quality Q] [--overwrite] [--presets DIR] [--device D] [-v]\n"
     "                                render frames FIRST, FIRST+STEP, ... up to LAST of SCENE\n"
     "                                (a preset, a SCENE.json or a snapshot file) into PATTERN,\n"
     "                                each run of # the zero-padded frame number\n"
@@ -374,7 +376,7 @@ static int frame_opt(const cli_t *cli, int argc, char **argv, int *i, cJSON *p) 
       {"--format", "-f", "format", 2},     {"--aov", NULL, "aov", 2},
       {"--layers", NULL, "layers", 3},     {"--camera", NULL, "camera", 4},
       {"--encoding", NULL, "encoding", 2}, {"--png-level", NULL, "png_level", 0},
-      {"--fps", NULL, "fps", 1},
+      {"--quality", "-q", "quality", 0},   {"--fps", NULL, "fps", 1},
   };
   for (size_t k = 0; k < sizeof(opts) / sizeof(opts[0]); k++) {
     const char *v;

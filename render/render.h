@@ -199,14 +199,6 @@ size_t render_format_bound(const render_format_t *f, uint32_t width, uint32_t he
 int render_output_encode(const render_format_t *f, const render_params_t *p, render_output_t *out,
                          char *err, size_t errlen);
 
-/* encode_jpeg.c: 8-bit RGBA rows as a JPEG of quality 'level' (1-100), alpha dropped. */
-int encode_jpeg(const uint8_t *rgba, uint32_t width, uint32_t height, int level,
-                unsigned char **out, size_t *nout);
-size_t encode_jpeg_bound(uint32_t width, uint32_t height);
-/* encode_webp.c: 8-bit RGBA rows as a WebP of quality 'level' (1-99 lossy, 100 lossless). */
-int encode_webp(const uint8_t *rgba, uint32_t width, uint32_t height, int level,
-                unsigned char **out, size_t *nout);
-size_t encode_webp_bound(uint32_t width, uint32_t height);
 /* encode_png.c: 8-bit RGBA rows as a PNG; 'level' -1 is the fast default (zlib 1, no filter). */
 int encode_png(const uint8_t *rgba, uint32_t width, uint32_t height, int level, unsigned char **out,
                size_t *nout);

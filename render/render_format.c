@@ -12,6 +12,14 @@ const char *const render_aov_names[] = {
 
 #define AOV_BIT(a) (1u << (a))
 
+/* The encoders (encode_<name>.c), each with the bound on the bytes it writes. */
+int encode_jpeg(const uint8_t *rgba, uint32_t width, uint32_t height, int level,
+                unsigned char **out, size_t *nout);
+size_t encode_jpeg_bound(uint32_t width, uint32_t height);
+int encode_webp(const uint8_t *rgba, uint32_t width, uint32_t height, int level,
+                unsigned char **out, size_t *nout);
+size_t encode_webp_bound(uint32_t width, uint32_t height);
+
 const render_format_t render_format_table[] = {{.name = "png",
                                                 .id = PROTO_FMT_PNG,
                                                 .aovs = AOV_BIT(AOV_BEAUTY),

@@ -847,7 +847,8 @@ static const sch_field_t sequence_params[] = {
     {.name = "dir",
      .type = SCH_STRING,
      .desc = "Directory under the data directory for the files dir/frame_NNNNNN.EXT (the frame "
-             "number in six or more digits, EXT the format: png, rgba8, rgbaf32 or f32); "
+             "number in six or more digits, EXT the format's name: png, jpeg, webp, rgba8, rgbaf32 "
+             "or f32); "
              "created when missing.",
      .max = 200,
      .flags = SCH_REQUIRED},

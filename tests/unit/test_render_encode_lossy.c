@@ -1,10 +1,10 @@
 /*
- * JPEG and WebP encoding (render/encode_jpeg.c, render/encode_webp.c), each decoded by its own
- * library's decoder (TurboJPEG's tjDecompress2, libwebp's WebPDecodeRGBA), independent of the
- * encoder's code: lossy frames come back within a stated error of the pixels encoded (PSNR over
- * RGB, and the mean absolute error), lossless WebP exactly, alpha included; a frame's alpha
- * survives lossy WebP exactly; JPEG drops it. Sizes from one pixel to odd ones that do not fill
- * the chroma blocks, and qualities at both ends. Bad qualities are refused.
+ * JPEG and WebP encoding (render/encode_jpeg.c, render/encode_webp.c, reached through the format
+ * table), each decoded by its own library's decoder (TurboJPEG's tjDecompress2, libwebp's
+ * WebPDecodeRGBA), independent of the encoder's code: lossy frames come back within a stated error
+ * of the pixels encoded (PSNR over RGB, and the mean absolute error), lossless WebP exactly, alpha
+ * included; a frame's alpha survives lossy WebP exactly; JPEG drops it. Sizes from one pixel to odd
+ * ones that do not fill the chroma blocks, and qualities at both ends. Bad qualities are refused.
  */
 #include <math.h>
 #include <stdint.h>
@@ -48,12 +48,21 @@ static double psnr_rgb(const uint8_t *a, const uint8_t *b, size_t pixels, double
   return se == 0 ? INFINITY : 10 * log10(255.0 * 255.0 / (se / (pixels * 3.0)));
 }
 
+/* The encoders, as the format table holds them. */
+static render_encode_fn encode_of(const char *name) {
+  return render_format_find(name)->encode;
+}
+
+static size_t bound_of(const char *name, uint32_t w, uint32_t h) {
+  return render_format_find(name)->encoded_bound(w, h);
+}
+
 static void jpeg_case(uint32_t w, uint32_t h, int quality, double min_psnr) {
   uint8_t *src = image(w, h);
   unsigned char *jpg = NULL;
   size_t n = 0;
-  int rc = encode_jpeg(src, w, h, quality, &jpg, &n);
-  CHECK(rc == 0 && n > 2 && n <= encode_jpeg_bound(w, h), "jpeg %ux%u q%d: encode rc %d, %zu bytes",
+  int rc = encode_of("jpeg")(src, w, h, quality, &jpg, &n);
+  CHECK(rc == 0 && n > 2 && n <= bound_of("jpeg", w, h), "jpeg %ux%u q%d: encode rc %d, %zu bytes",
         w, h, quality, rc, n);
   if (rc == 0) {
     tjhandle tj = tjInitDecompress();
@@ -86,9 +95,9 @@ static void webp_case(uint32_t w, uint32_t h, int quality, double min_psnr) {
   uint8_t *src = image(w, h);
   unsigned char *webp = NULL;
   size_t n = 0;
-  int rc = encode_webp(src, w, h, quality, &webp, &n);
-  CHECK(rc == 0 && n > 12 && n <= encode_webp_bound(w, h),
-        "webp %ux%u q%d: encode rc %d, %zu bytes", w, h, quality, rc, n);
+  int rc = encode_of("webp")(src, w, h, quality, &webp, &n);
+  CHECK(rc == 0 && n > 12 && n <= bound_of("webp", w, h), "webp %ux%u q%d: encode rc %d, %zu bytes",
+        w, h, quality, rc, n);
   if (rc == 0) {
     int dw = 0, dh = 0;
     uint8_t *back = WebPDecodeRGBA(webp, n, &dw, &dh);
@@ -131,10 +140,11 @@ int main(void) {
   unsigned char *out = NULL;
   size_t n = 0;
   uint8_t px[4] = {1, 2, 3, 4};
-  CHECK(encode_jpeg(px, 1, 1, 0, &out, &n) == -1 && out == NULL, "jpeg quality 0 accepted");
-  CHECK(encode_jpeg(px, 1, 1, 101, &out, &n) == -1 && out == NULL, "jpeg quality 101 accepted");
-  CHECK(encode_webp(px, 1, 1, 0, &out, &n) == -1 && out == NULL, "webp quality 0 accepted");
-  CHECK(encode_webp(px, 20000, 1, 80, &out, &n) == -1 && out == NULL,
+  CHECK(encode_of("jpeg")(px, 1, 1, 0, &out, &n) == -1 && out == NULL, "jpeg quality 0 accepted");
+  CHECK(encode_of("jpeg")(px, 1, 1, 101, &out, &n) == -1 && out == NULL,
+        "jpeg quality 101 accepted");
+  CHECK(encode_of("webp")(px, 1, 1, 0, &out, &n) == -1 && out == NULL, "webp quality 0 accepted");
+  CHECK(encode_of("webp")(px, 20000, 1, 80, &out, &n) == -1 && out == NULL,
         "webp wider than its 16383 pixels accepted");
   printf("test_render_encode_lossy: %d checks, %d failed\n", checks, failures);
   return failures == 0 ? 0 : 1;
