@@ -1,5 +1,6 @@
 /*
- * The error carrier (proto_error.h): clearing it and filling it from a format.
+ * The error carrier (proto_error.h): clearing it and filling it from a format; and the message
+ * alone formatted into a caller's buffer.
  */
 #include "proto_error.h"
 
@@ -28,4 +29,13 @@ int proto_error_set(proto_error_t *e, int code, const char *path, const char *fm
   proto_error_vset(e, code, path, fmt, ap);
   va_end(ap);
   return -1;
+}
+
+void proto_error_format(char *buf, size_t len, const char *fmt, ...) {
+  if (buf == NULL || len == 0)
+    return;
+  va_list ap;
+  va_start(ap, fmt);
+  vsnprintf(buf, len, fmt, ap);
+  va_end(ap);
 }

@@ -10,6 +10,7 @@
 #define VOLFX_PROTO_ERROR_H
 
 #include <stdarg.h>
+#include <stddef.h>
 
 #define PROTO_ERROR_PATH 256    /* Bytes of a path, its NUL included; longer ones are cut. */
 #define PROTO_ERROR_MESSAGE 256 /* Bytes of a message, its NUL included. */
@@ -30,5 +31,14 @@ int proto_error_set(proto_error_t *e, int code, const char *path, const char *fm
 /* The same with the arguments in 'ap'. */
 int proto_error_vset(proto_error_t *e, int code, const char *path, const char *fmt, va_list ap)
     __attribute__((format(printf, 4, 0)));
+
+/*
+ * The message alone, formatted into a caller's buffer of 'len' bytes (NULL or 0: nothing): the
+ * form the renderer's and the simulations' functions hand a message back in, since theirs (an
+ * OpenCL build log) can outgrow the carrier's. The caller turns it into a carrier, or an
+ * answer, with the code it knows.
+ */
+void proto_error_format(char *buf, size_t len, const char *fmt, ...)
+    __attribute__((format(printf, 3, 4)));
 
 #endif

@@ -4,6 +4,7 @@
  * directory while developing kernels). The renderer is single-threaded, so nothing here locks.
  */
 #include "cl_device.h"
+#include "proto_error.h"
 
 #include <ctype.h>
 #include <errno.h>
@@ -26,15 +27,6 @@ extern const struct embedded_kernel embedded_kernels[];
 #define MAX_DEVICES 64
 #define MAX_KERNEL_FILE (4u << 20) /* Largest kernel source file read from a directory. */
 #define MAX_INCLUDE_DEPTH 8
-
-static void set_err(char *err, size_t errlen, const char *fmt, ...) {
-  if (err == NULL || errlen == 0)
-    return;
-  va_list ap;
-  va_start(ap, fmt);
-  vsnprintf(err, errlen, fmt, ap);
-  va_end(ap);
-}
 
 const char *cl_dev_strerror(cl_int status) {
   switch (status) {
@@ -136,10 +128,10 @@ static int list_devices(cl_platform_id *plats, cl_device_id *devs, char *err, si
   cl_uint nplat = 0;
   cl_int rc = clGetPlatformIDs(16, platforms, &nplat);
   if (rc != CL_SUCCESS || nplat == 0) {
-    set_err(err, errlen,
-            "[cl_dev_open] no OpenCL platform found (%s); is an ICD such as "
-            "pocl-opencl-icd installed?",
-            cl_dev_strerror(rc));
+    proto_error_format(err, errlen,
+                       "[cl_dev_open] no OpenCL platform found (%s); is an ICD such as "
+                       "pocl-opencl-icd installed?",
+                       cl_dev_strerror(rc));
     return -1;
   }
   if (nplat > 16)
@@ -157,7 +149,8 @@ static int list_devices(cl_platform_id *plats, cl_device_id *devs, char *err, si
     n += (int)nd;
   }
   if (n == 0)
-    set_err(err, errlen, "[cl_dev_open] no OpenCL device found on %u platform(s)", nplat);
+    proto_error_format(err, errlen, "[cl_dev_open] no OpenCL device found on %u platform(s)",
+                       nplat);
   return n > 0 ? n : -1;
 }
 
@@ -197,19 +190,20 @@ int cl_dev_open(cl_dev_t *d, const char *which, char *err, size_t errlen) {
     int gpu = which[0] == 'g';
     pick = first_of_type(devs, n, gpu ? CL_DEVICE_TYPE_GPU : CL_DEVICE_TYPE_CPU);
     if (pick < 0) {
-      set_err(err, errlen, "[cl_dev_open] no %s OpenCL device among the %d found", which, n);
+      proto_error_format(err, errlen, "[cl_dev_open] no %s OpenCL device among the %d found", which,
+                         n);
       return -1;
     }
   } else if (parse_index(which, &index) == 0) {
     if (index >= (unsigned)n) {
-      set_err(err, errlen, "[cl_dev_open] device index %u out of range: %d device(s) found", index,
-              n);
+      proto_error_format(
+          err, errlen, "[cl_dev_open] device index %u out of range: %d device(s) found", index, n);
       return -1;
     }
     pick = (int)index;
   } else {
-    set_err(err, errlen, "[cl_dev_open] unknown device \"%s\": expected cpu, gpu or an index",
-            which);
+    proto_error_format(err, errlen,
+                       "[cl_dev_open] unknown device \"%s\": expected cpu, gpu or an index", which);
     return -1;
   }
 
@@ -225,15 +219,15 @@ int cl_dev_open(cl_dev_t *d, const char *which, char *err, size_t errlen) {
   cl_context_properties props[] = {CL_CONTEXT_PLATFORM, (cl_context_properties)d->platform, 0};
   d->context = clCreateContext(props, 1, &d->device, NULL, NULL, &rc);
   if (d->context == NULL) {
-    set_err(err, errlen, "[cl_dev_open] clCreateContext on %s failed: %s", d->device_name,
-            cl_dev_strerror(rc));
+    proto_error_format(err, errlen, "[cl_dev_open] clCreateContext on %s failed: %s",
+                       d->device_name, cl_dev_strerror(rc));
     cl_dev_close(d);
     return -1;
   }
   d->queue = clCreateCommandQueue(d->context, d->device, 0, &rc);
   if (d->queue == NULL) {
-    set_err(err, errlen, "[cl_dev_open] clCreateCommandQueue on %s failed: %s", d->device_name,
-            cl_dev_strerror(rc));
+    proto_error_format(err, errlen, "[cl_dev_open] clCreateCommandQueue on %s failed: %s",
+                       d->device_name, cl_dev_strerror(rc));
     cl_dev_close(d);
     return -1;
   }
@@ -284,12 +278,12 @@ static char *load_file(const char *dir, const char *name, char *err, size_t errl
       if (strcmp(k->name, name) == 0)
         return strndup(k->data, k->len);
     }
-    set_err(err, errlen, "[cl_dev_build] no embedded kernel file \"%s\"", name);
+    proto_error_format(err, errlen, "[cl_dev_build] no embedded kernel file \"%s\"", name);
     return NULL;
   }
   FILE *f = fopen(path, "rb");
   if (f == NULL) {
-    set_err(err, errlen, "[cl_dev_build] cannot open %s: %s", path, strerror(errno));
+    proto_error_format(err, errlen, "[cl_dev_build] cannot open %s: %s", path, strerror(errno));
     return NULL;
   }
   char *text = malloc(MAX_KERNEL_FILE + 1);
@@ -297,8 +291,9 @@ static char *load_file(const char *dir, const char *name, char *err, size_t errl
   int bad = text == NULL || ferror(f) || n > MAX_KERNEL_FILE;
   fclose(f);
   if (bad) {
-    set_err(err, errlen, "[cl_dev_build] cannot read %s (over %u bytes, or an I/O error)", path,
-            MAX_KERNEL_FILE);
+    proto_error_format(err, errlen,
+                       "[cl_dev_build] cannot read %s (over %u bytes, or an I/O error)", path,
+                       MAX_KERNEL_FILE);
     free(text);
     return NULL;
   }
@@ -314,7 +309,7 @@ static char *load_file(const char *dir, const char *name, char *err, size_t errl
 static int append_expanded(sbuf_t *out, const char *dir, const char *name, int depth, char *err,
                            size_t errlen) {
   if (depth > MAX_INCLUDE_DEPTH) {
-    set_err(err, errlen, "[cl_dev_build] #include nested too deeply at %s", name);
+    proto_error_format(err, errlen, "[cl_dev_build] #include nested too deeply at %s", name);
     return -1;
   }
   char *text = load_file(dir, name, err, errlen);
@@ -345,7 +340,7 @@ static int append_expanded(sbuf_t *out, const char *dir, const char *name, int d
   }
   free(text);
   if (rc != 0 && err && err[0] == '\0')
-    set_err(err, errlen, "[cl_dev_build] out of memory");
+    proto_error_format(err, errlen, "[cl_dev_build] out of memory");
   return rc;
 }
 
@@ -458,7 +453,7 @@ int cl_dev_build(cl_dev_t *d, const char *kernels_dir, const char *options, char
     }
   }
   if (src.p == NULL) {
-    set_err(err, errlen, "[cl_dev_build] no kernel sources");
+    proto_error_format(err, errlen, "[cl_dev_build] no kernel sources");
     return -1;
   }
 
@@ -472,8 +467,8 @@ int cl_dev_build(cl_dev_t *d, const char *kernels_dir, const char *options, char
   d->program = clCreateProgramWithSource(d->context, 1, &text, &src.len, &rc);
   free(src.p);
   if (d->program == NULL) {
-    set_err(err, errlen, "[cl_dev_build] clCreateProgramWithSource failed: %s",
-            cl_dev_strerror(rc));
+    proto_error_format(err, errlen, "[cl_dev_build] clCreateProgramWithSource failed: %s",
+                       cl_dev_strerror(rc));
     return -1;
   }
   rc = clBuildProgram(d->program, 1, &d->device, options, NULL, NULL);
@@ -488,8 +483,8 @@ int cl_dev_build(cl_dev_t *d, const char *kernels_dir, const char *options, char
     loglen = 0;
   if (log)
     log[loglen] = '\0';
-  set_err(err, errlen, "[cl_dev_build] clBuildProgram for %s failed (%s):\n%s", d->device_name,
-          cl_dev_strerror(rc), log && loglen ? log : "(no build log)");
+  proto_error_format(err, errlen, "[cl_dev_build] clBuildProgram for %s failed (%s):\n%s",
+                     d->device_name, cl_dev_strerror(rc), log && loglen ? log : "(no build log)");
   free(log);
   clReleaseProgram(d->program);
   d->program = NULL;
@@ -500,8 +495,8 @@ cl_kernel cl_dev_kernel(cl_dev_t *d, const char *name, char *err, size_t errlen)
   cl_int rc;
   cl_kernel k = clCreateKernel(d->program, name, &rc);
   if (k == NULL)
-    set_err(err, errlen, "[cl_dev_kernel] clCreateKernel(%s) failed: %s", name,
-            cl_dev_strerror(rc));
+    proto_error_format(err, errlen, "[cl_dev_kernel] clCreateKernel(%s) failed: %s", name,
+                       cl_dev_strerror(rc));
   return k;
 }
 

@@ -45,8 +45,8 @@ static int read_back(renderer_t *r, cl_mem buf, size_t pixel, size_t pitch,
   cl_int cr = clEnqueueReadBufferRect(r->dev.queue, buf, CL_TRUE, origin, origin, region,
                                       pitch * pixel, 0, p->width * pixel, 0, dst, 0, NULL, NULL);
   if (cr != CL_SUCCESS) {
-    set_err(err, errlen, "[render] readback failed on %s: %s", r->dev.device_name,
-            cl_dev_strerror(cr));
+    proto_error_format(err, errlen, "[render] readback failed on %s: %s", r->dev.device_name,
+                       cl_dev_strerror(cr));
     return PROTO_E_DEVICE;
   }
   return 0;
@@ -96,8 +96,8 @@ int renderer_render(renderer_t *r, const render_scene_t *scene, const render_par
   if (err && errlen)
     err[0] = '\0';
   if (p->width == 0 || p->height == 0 || p->width > MAX_SIDE || p->height > MAX_SIDE) {
-    set_err(err, errlen, "width and height must lie in [1, %d], not %ux%u", MAX_SIDE, p->width,
-            p->height);
+    proto_error_format(err, errlen, "width and height must lie in [1, %d], not %ux%u", MAX_SIDE,
+                       p->width, p->height);
     return PROTO_E_INVALID_PARAMS;
   }
   int rc = render_format_check(p->format, (int)p->aov, err, errlen);
@@ -105,7 +105,7 @@ int renderer_render(renderer_t *r, const render_scene_t *scene, const render_par
     return rc;
   const render_format_t *fmt = render_format_get(p->format);
   if (fmt->encode && (p->png_level < -1 || p->png_level > 9)) {
-    set_err(err, errlen, "png level must lie in [-1, 9], not %d", p->png_level);
+    proto_error_format(err, errlen, "png level must lie in [-1, 9], not %d", p->png_level);
     return PROTO_E_INVALID_PARAMS;
   }
 
@@ -126,7 +126,8 @@ int renderer_render(renderer_t *r, const render_scene_t *scene, const render_par
     /* No pass draws the aov: it is zero everywhere (the waves' summed H without waves). */
     out->bytes = calloc(npix, fmt->bytes_per_pixel);
     if (out->bytes == NULL) {
-      set_err(err, errlen, "[render] out of memory for a %ux%u frame", p->width, p->height);
+      proto_error_format(err, errlen, "[render] out of memory for a %ux%u frame", p->width,
+                         p->height);
       return PROTO_E_INTERNAL;
     }
     out->nbytes = npix * fmt->bytes_per_pixel;
@@ -159,7 +160,8 @@ int renderer_render(renderer_t *r, const render_scene_t *scene, const render_par
   size_t nbytes = fmt->bytes_per_pixel * npix;
   unsigned char *bytes = malloc(nbytes);
   if (bytes == NULL) {
-    set_err(err, errlen, "[render] out of memory for a %ux%u frame", p->width, p->height);
+    proto_error_format(err, errlen, "[render] out of memory for a %ux%u frame", p->width,
+                       p->height);
     return PROTO_E_INTERNAL;
   }
   double t = now_ms();
@@ -287,7 +289,7 @@ int renderer_create(const renderer_opts_t *opts, renderer_t **out, char *err, si
   *out = NULL;
   renderer_t *r = calloc(1, sizeof *r);
   if (r == NULL) {
-    set_err(err, errlen, "[renderer_create] out of memory");
+    proto_error_format(err, errlen, "[renderer_create] out of memory");
     return -1;
   }
   if (cl_dev_open(&r->dev, opts ? opts->device : NULL, err, errlen) != 0) {

@@ -224,7 +224,8 @@ static int fluid_run(renderer_t *r, void *state, const render_scene_t *scene,
   memset(&fl, 0, sizeof fl);
   long ncell = fluid_build(fs, fd, &fl);
   if (ncell < 0) {
-    set_err(err, errlen, "[render] out of memory for the grid of %u particles", fd->count);
+    proto_error_format(err, errlen, "[render] out of memory for the grid of %u particles",
+                       fd->count);
     return PROTO_E_INTERNAL;
   }
   if (ncell == 0)

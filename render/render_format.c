@@ -157,7 +157,8 @@ int render_output_encode(const render_format_t *f, const render_params_t *p, ren
   size_t n = 0;
   int level = f->quality ? p->quality : p->png_level;
   if (f->encode(out->bytes, p->width, p->height, level, &bytes, &n) != 0) {
-    set_err(err, errlen, "%s encoding of a %ux%u frame failed", f->name, p->width, p->height);
+    proto_error_format(err, errlen, "%s encoding of a %ux%u frame failed", f->name, p->width,
+                       p->height);
     free(out->bytes);
     out->bytes = NULL;
     out->nbytes = 0;

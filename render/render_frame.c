@@ -22,8 +22,8 @@ int render_ensure_buffer(renderer_t *r, cl_mem *buf, size_t *cap, size_t need, s
   }
   if (*buf == NULL) {
     *cap = 0;
-    set_err(err, errlen, "[render] cannot allocate %zu bytes on %s: %s", need * size,
-            r->dev.device_name, cl_dev_strerror(rc));
+    proto_error_format(err, errlen, "[render] cannot allocate %zu bytes on %s: %s", need * size,
+                       r->dev.device_name, cl_dev_strerror(rc));
     return -1;
   }
   *cap = want;
@@ -101,7 +101,7 @@ void render_geometry_forget(render_frame_t *f) {
 void *render_state_new(void **state, size_t size, char *err, size_t errlen) {
   *state = calloc(1, size);
   if (*state == NULL)
-    set_err(err, errlen, "[render] out of memory");
+    proto_error_format(err, errlen, "[render] out of memory");
   return *state;
 }
 
@@ -121,8 +121,8 @@ int render_launch(renderer_t *r, cl_int cr, cl_kernel k, const size_t global[2],
   if (cr == CL_SUCCESS)
     cr = clFinish(r->dev.queue);
   if (cr != CL_SUCCESS) {
-    set_err(err, errlen, "[render] %s pass failed on %s: %s", pass, r->dev.device_name,
-            cl_dev_strerror(cr));
+    proto_error_format(err, errlen, "[render] %s pass failed on %s: %s", pass, r->dev.device_name,
+                       cl_dev_strerror(cr));
     return -1;
   }
   return 0;

@@ -53,7 +53,7 @@ render_depth_t *render_depth_make(const void *le_f32s, uint32_t width, uint32_t 
   float *z = malloc((size_t)width * height * sizeof(float));
   if (d == NULL || z == NULL) {
     free(d), free(z);
-    set_err(err, errlen, "out of memory for a %ux%u depth buffer", width, height);
+    proto_error_format(err, errlen, "out of memory for a %ux%u depth buffer", width, height);
     return NULL;
   }
   const unsigned char *in = le_f32s;
@@ -74,8 +74,8 @@ render_depth_t *render_depth_make(const void *le_f32s, uint32_t width, uint32_t 
         dv = 1 - dv;
       double vz = render_depth_view_z(conv, dv, near_, far_, 1 / sqrt(1 + u * u + v * v));
       if (isnan(vz)) {
-        set_err(err, errlen, "value %g at pixel (%u, %u) is not %s%s", raw, x, y,
-                conv == DEPTH_LINEAR || conv == DEPTH_RAY ? "" : "in ", range);
+        proto_error_format(err, errlen, "value %g at pixel (%u, %u) is not %s%s", raw, x, y,
+                           conv == DEPTH_LINEAR || conv == DEPTH_RAY ? "" : "in ", range);
         free(d), free(z);
         return NULL;
       }
@@ -134,8 +134,8 @@ static int game_depth_run(renderer_t *r, void *state, const render_scene_t *scen
   const render_depth_t *dz = p->depth;
   int n = r->frame.antialias;
   if (dz->width * (uint32_t)n != p->width || dz->height * (uint32_t)n != p->height) {
-    set_err(err, errlen, "the depth buffer is %ux%u, not the frame's %ux%u", dz->width, dz->height,
-            p->width / n, p->height / n);
+    proto_error_format(err, errlen, "the depth buffer is %ux%u, not the frame's %ux%u", dz->width,
+                       dz->height, p->width / n, p->height / n);
     return PROTO_E_INVALID_PARAMS;
   }
   size_t npix = (size_t)dz->width * dz->height;

@@ -15,6 +15,7 @@
 #include "render.h"
 #include "cl_device.h"
 #include "../kernels/common.h"
+#include "proto_error.h"
 
 /*
  * Fixed local sizes: PoCL compiles a kernel once per local size, at its first launch. An
@@ -111,15 +112,6 @@ struct renderer {
   void *state[RENDER_PASSES_MAX]; /* Each pass's own state, in the table's order. */
   int kernels_ready; /* Every pass's kernels were created: the program binary is worth saving. */
 };
-
-static inline void set_err(char *err, size_t errlen, const char *fmt, ...) {
-  if (err == NULL || errlen == 0)
-    return;
-  va_list ap;
-  va_start(ap, fmt);
-  vsnprintf(err, errlen, fmt, ap);
-  va_end(ap);
-}
 
 static inline double now_ms(void) {
   struct timespec ts;

@@ -313,7 +313,7 @@ static int bvh_update(renderer_t *r, const render_scene_t *scene, char *err, siz
     }
   }
   if (ntri > INT32_MAX / TRI_STRIDE) {
-    set_err(err, errlen, "[render] scene has too many mesh triangles (%zu)", ntri);
+    proto_error_format(err, errlen, "[render] scene has too many mesh triangles (%zu)", ntri);
     return PROTO_E_LIMIT;
   }
   r->frame.bvh_keys = calloc(nmesh ? (size_t)nmesh : 1, sizeof *r->frame.bvh_keys);
@@ -327,7 +327,8 @@ static int bvh_update(renderer_t *r, const render_scene_t *scene, char *err, siz
   box_empty(root), box_empty(root + 6);
   int rc = PROTO_E_INTERNAL;
   if (!r->frame.bvh_keys || !world || !box || !cent || !owner || !b.idx) {
-    set_err(err, errlen, "[render] out of memory building the mesh BVH (%zu triangles)", ntri);
+    proto_error_format(err, errlen, "[render] out of memory building the mesh BVH (%zu triangles)",
+                       ntri);
     goto done;
   }
 
@@ -373,12 +374,14 @@ static int bvh_update(renderer_t *r, const render_scene_t *scene, char *err, siz
 
   if (ntri > 0) {
     if (bvh_split(&b, 0, ntri, 0, root) != 0) {
-      set_err(err, errlen, "[render] out of memory building the mesh BVH (%zu triangles)", ntri);
+      proto_error_format(err, errlen,
+                         "[render] out of memory building the mesh BVH (%zu triangles)", ntri);
       goto done;
     }
     packed = malloc(ntri * TRI_STRIDE * sizeof(float));
     if (packed == NULL) {
-      set_err(err, errlen, "[render] out of memory building the mesh BVH (%zu triangles)", ntri);
+      proto_error_format(err, errlen,
+                         "[render] out of memory building the mesh BVH (%zu triangles)", ntri);
       goto done;
     }
     for (size_t i = 0; i < ntri; i++) {
@@ -404,7 +407,8 @@ static int bvh_update(renderer_t *r, const render_scene_t *scene, char *err, siz
       cr = clEnqueueWriteBuffer(r->dev.queue, r->frame.tris, CL_TRUE, 0,
                                 ntri * TRI_STRIDE * sizeof(float), packed, 0, NULL, NULL);
     if (cr != CL_SUCCESS) {
-      set_err(err, errlen, "[render] uploading the mesh BVH failed: %s", cl_dev_strerror(cr));
+      proto_error_format(err, errlen, "[render] uploading the mesh BVH failed: %s",
+                         cl_dev_strerror(cr));
       goto done;
     }
   }
@@ -437,7 +441,7 @@ static int setup_camera(vfx_frame_t *f, const rcamera_t *c, uint32_t w, uint32_t
     fw[i] = (double)c->target[i] - c->eye[i];
   len = sqrt(fw[0] * fw[0] + fw[1] * fw[1] + fw[2] * fw[2]);
   if (!(len > 0) || !isfinite(len)) {
-    set_err(err, errlen, "camera: target must differ from eye");
+    proto_error_format(err, errlen, "camera: target must differ from eye");
     return PROTO_E_INVALID_PARAMS;
   }
   for (int i = 0; i < 3; i++)
@@ -449,7 +453,7 @@ static int setup_camera(vfx_frame_t *f, const rcamera_t *c, uint32_t w, uint32_t
   double up_len =
       sqrt((double)c->up[0] * c->up[0] + (double)c->up[1] * c->up[1] + (double)c->up[2] * c->up[2]);
   if (!(len > 1e-7 * up_len) || !isfinite(len)) {
-    set_err(err, errlen, "camera: up must not be parallel to the view direction");
+    proto_error_format(err, errlen, "camera: up must not be parallel to the view direction");
     return PROTO_E_INVALID_PARAMS;
   }
   for (int i = 0; i < 3; i++)
@@ -458,11 +462,11 @@ static int setup_camera(vfx_frame_t *f, const rcamera_t *c, uint32_t w, uint32_t
   up[1] = rt[2] * fw[0] - rt[0] * fw[2];
   up[2] = rt[0] * fw[1] - rt[1] * fw[0];
   if (!(c->fov_y > 0 && c->fov_y < 180)) {
-    set_err(err, errlen, "camera: fov_y must lie in (0, 180) degrees");
+    proto_error_format(err, errlen, "camera: fov_y must lie in (0, 180) degrees");
     return PROTO_E_INVALID_PARAMS;
   }
   if (!(c->near_ >= 0) || !(c->far_ > c->near_) || isnan(c->far_)) {
-    set_err(err, errlen, "camera: need 0 <= near < far");
+    proto_error_format(err, errlen, "camera: need 0 <= near < far");
     return PROTO_E_INVALID_PARAMS;
   }
   double th = tan(c->fov_y * (M_PI / 360)), aspect = (double)w / h;
@@ -500,7 +504,7 @@ static int pack_objects(renderer_t *r, const render_scene_t *scene, int draw, vf
   if (need > r->frame.host_objs_cap) {
     float *p = realloc(r->frame.host_objs, need * sizeof(float));
     if (p == NULL) {
-      set_err(err, errlen, "[render] out of memory for %d objects", scene->nobjects);
+      proto_error_format(err, errlen, "[render] out of memory for %d objects", scene->nobjects);
       return PROTO_E_INTERNAL;
     }
     r->frame.host_objs = p, r->frame.host_objs_cap = need;

@@ -793,7 +793,7 @@ static int render_shadow(renderer_t *r, struct vol_state *vs, const vfx_shadow_t
                          size_t errlen) {
   int c = shadow_cached(r, vs, sh);
   if (c < 0) {
-    set_err(err, errlen, "[render] out of memory for the shadow map's key");
+    proto_error_format(err, errlen, "[render] out of memory for the shadow map's key");
     return PROTO_E_INTERNAL;
   }
   if (c == 1)
@@ -814,8 +814,8 @@ static int render_shadow(renderer_t *r, struct vol_state *vs, const vfx_shadow_t
   if (cr == CL_SUCCESS)
     cr = clEnqueueNDRangeKernel(r->dev.queue, k, 2, NULL, global, local, 0, NULL, NULL);
   if (cr != CL_SUCCESS) {
-    set_err(err, errlen, "[render] shadow map failed on %s: %s", r->dev.device_name,
-            cl_dev_strerror(cr));
+    proto_error_format(err, errlen, "[render] shadow map failed on %s: %s", r->dev.device_name,
+                       cl_dev_strerror(cr));
     return PROTO_E_DEVICE;
   }
   vs->smap_valid = 1;
@@ -976,7 +976,7 @@ static int volume_run(renderer_t *r, void *state, const render_scene_t *scene,
   const vol_entry_t **drawn = malloc(cap * sizeof *drawn);
   int rc = 0;
   if (list == NULL || ord == NULL || drawn == NULL) {
-    set_err(err, errlen, "[render] out of memory for %d volumes", scene->nvolumes);
+    proto_error_format(err, errlen, "[render] out of memory for %d volumes", scene->nvolumes);
     rc = PROTO_E_INTERNAL;
     goto done;
   }
@@ -986,7 +986,7 @@ static int volume_run(renderer_t *r, void *state, const render_scene_t *scene,
   if (n > vs->nents) {
     vol_entry_t *e = realloc(vs->ents, n * sizeof *e);
     if (e == NULL) {
-      set_err(err, errlen, "[render] out of memory for %d volumes", n);
+      proto_error_format(err, errlen, "[render] out of memory for %d volumes", n);
       rc = PROTO_E_INTERNAL;
       goto done;
     }
@@ -1003,7 +1003,7 @@ static int volume_run(renderer_t *r, void *state, const render_scene_t *scene,
     changed = 1;
     if (entry_build(&vs->ents[i], list[i], sigma, l) != 0) {
       entry_clear(&vs->ents[i]);
-      set_err(err, errlen, "[render] out of memory preparing volume %d", i);
+      proto_error_format(err, errlen, "[render] out of memory preparing volume %d", i);
       rc = PROTO_E_INTERNAL;
       goto done;
     }
@@ -1067,7 +1067,7 @@ static int volume_run(renderer_t *r, void *state, const render_scene_t *scene,
   qsort(ord, nd, sizeof *ord, by_dist);
   if (grow_staging((void **)&vs->host_recs, &vs->host_recs_cap, (size_t)nd * VOL_STRIDE,
                    sizeof(float)) != 0) {
-    set_err(err, errlen, "[render] out of memory for %d volumes", nd);
+    proto_error_format(err, errlen, "[render] out of memory for %d volumes", nd);
     rc = PROTO_E_INTERNAL;
     goto done;
   }
@@ -1108,8 +1108,8 @@ static int volume_run(renderer_t *r, void *state, const render_scene_t *scene,
         clEnqueueWriteBuffer(r->dev.queue, vs->recs, CL_FALSE, 0,
                              (size_t)nd * VOL_STRIDE * sizeof(float), vs->host_recs, 0, NULL, NULL);
   if (cr != CL_SUCCESS) {
-    set_err(err, errlen, "[render] volume upload failed on %s: %s", r->dev.device_name,
-            cl_dev_strerror(cr));
+    proto_error_format(err, errlen, "[render] volume upload failed on %s: %s", r->dev.device_name,
+                       cl_dev_strerror(cr));
     rc = PROTO_E_DEVICE;
     goto done;
   }
@@ -1141,8 +1141,8 @@ static int volume_run(renderer_t *r, void *state, const render_scene_t *scene,
   if (cr == CL_SUCCESS)
     cr = clFinish(r->dev.queue);
   if (cr != CL_SUCCESS) {
-    set_err(err, errlen, "[render] volumes pass failed on %s: %s", r->dev.device_name,
-            cl_dev_strerror(cr));
+    proto_error_format(err, errlen, "[render] volumes pass failed on %s: %s", r->dev.device_name,
+                       cl_dev_strerror(cr));
     rc = PROTO_E_DEVICE;
     goto done;
   }

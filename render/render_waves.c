@@ -213,7 +213,7 @@ static int waves_draw(renderer_t *r, waves_state_t *ws, const render_scene_t *sc
   *ran = 0;
   int n = pack_waves(ws, scene, r->frame.consts.eye);
   if (n < 0) {
-    set_err(err, errlen, "[render] out of memory for %d waves", scene->nwaves);
+    proto_error_format(err, errlen, "[render] out of memory for %d waves", scene->nwaves);
     return PROTO_E_INTERNAL;
   }
   size_t npix = r->frame.pitch * r->frame.rows;
@@ -227,7 +227,7 @@ static int waves_draw(renderer_t *r, waves_state_t *ws, const render_scene_t *sc
     return PROTO_E_DEVICE;
   size_t nlists = cull_waves(r, ws, n);
   if (nlists == 0) {
-    set_err(err, errlen, "[render] out of memory for the wave lists");
+    proto_error_format(err, errlen, "[render] out of memory for the wave lists");
     return PROTO_E_INTERNAL;
   }
   if (render_ensure_buffer(r, &ws->wave_lists, &ws->cap_lists, nlists, sizeof(int32_t),

@@ -7,6 +7,7 @@
  * the sizes we run and buys determinism, adaptive substeps and trivial emitters.
  */
 #include "sim_fluid.h"
+#include "proto_error.h"
 
 #include <math.h>
 #include <stdarg.h>
@@ -53,15 +54,6 @@ struct fluid_sim {
   uint64_t frame; /* The frame the next step starts from: it picks the emitters' draws. */
   int last_substeps;
 };
-
-static void set_err(char *err, size_t errlen, const char *fmt, ...) {
-  if (err == NULL || errlen == 0)
-    return;
-  va_list ap;
-  va_start(ap, fmt);
-  vsnprintf(err, errlen, fmt, ap);
-  va_end(ap);
-}
 
 /* splitmix64: the emitters' random numbers, reproducible from the seed. */
 static uint64_t rng_next(uint64_t *s) {
@@ -115,35 +107,39 @@ static int finite3(const float *v) {
 /* Checks 'p'; returns 0 or -1 with a message naming the field. */
 static int params_check(const fluid_params_t *p, char *err, size_t errlen) {
   if (!(p->h > 0) || !isfinite(p->h))
-    return set_err(err, errlen, "fluid.h must be a positive number"), -1;
+    return proto_error_format(err, errlen, "fluid.h must be a positive number"), -1;
   if (!(p->particle_mass > 0) || !isfinite(p->particle_mass))
-    return set_err(err, errlen, "fluid.particle_mass must be a positive number"), -1;
+    return proto_error_format(err, errlen, "fluid.particle_mass must be a positive number"), -1;
   if (!(p->rest_density > 0) || !isfinite(p->rest_density))
-    return set_err(err, errlen, "fluid.rest_density must be a positive number"), -1;
+    return proto_error_format(err, errlen, "fluid.rest_density must be a positive number"), -1;
   if (!(p->stiffness > 0) || !isfinite(p->stiffness))
-    return set_err(err, errlen, "fluid.stiffness must be a positive number"), -1;
+    return proto_error_format(err, errlen, "fluid.stiffness must be a positive number"), -1;
   if (!(p->viscosity >= 0) || !isfinite(p->viscosity))
-    return set_err(err, errlen, "fluid.viscosity must be a number >= 0"), -1;
+    return proto_error_format(err, errlen, "fluid.viscosity must be a number >= 0"), -1;
   if (!(p->wall_friction >= 0 && p->wall_friction <= 1))
-    return set_err(err, errlen, "fluid.wall_friction must lie in [0, 1]"), -1;
+    return proto_error_format(err, errlen, "fluid.wall_friction must lie in [0, 1]"), -1;
   if (!finite3(p->gravity))
-    return set_err(err, errlen, "fluid.gravity must be finite"), -1;
+    return proto_error_format(err, errlen, "fluid.gravity must be finite"), -1;
   if (!finite3(p->bounds_min) || !finite3(p->bounds_max))
-    return set_err(err, errlen, "fluid.bounds must be finite"), -1;
+    return proto_error_format(err, errlen, "fluid.bounds must be finite"), -1;
   for (int i = 0; i < 3; i++) {
     if (!(p->bounds_max[i] > p->bounds_min[i]))
-      return set_err(err, errlen, "fluid.bounds: max must exceed min on every axis"), -1;
+      return proto_error_format(err, errlen, "fluid.bounds: max must exceed min on every axis"), -1;
   }
   if (p->max_particles == 0 || p->max_particles > FLUID_MAX_PARTICLES)
-    return set_err(err, errlen, "fluid.max_particles must lie in [1, %u]", FLUID_MAX_PARTICLES), -1;
+    return proto_error_format(err, errlen, "fluid.max_particles must lie in [1, %u]",
+                              FLUID_MAX_PARTICLES),
+           -1;
   if (p->nemitters < 0 || p->nemitters > FLUID_MAX_EMITTERS)
-    return set_err(err, errlen, "fluid.emitters: at most %d", FLUID_MAX_EMITTERS), -1;
+    return proto_error_format(err, errlen, "fluid.emitters: at most %d", FLUID_MAX_EMITTERS), -1;
   for (int e = 0; e < p->nemitters; e++) {
     const fluid_emitter_t *m = &p->emitters[e];
     if ((m->shape != FLUID_EMIT_SPHERE && m->shape != FLUID_EMIT_BOX) || !finite3(m->position) ||
         !finite3(m->size) || !finite3(m->velocity) || !(m->rate >= 0) || !isfinite(m->rate) ||
         m->size[0] < 0 || m->size[1] < 0 || m->size[2] < 0)
-      return set_err(err, errlen, "fluid.emitters[%d]: bad shape, size, rate or velocity", e), -1;
+      return proto_error_format(err, errlen,
+                                "fluid.emitters[%d]: bad shape, size, rate or velocity", e),
+             -1;
   }
   return 0;
 }
@@ -250,12 +246,12 @@ static size_t state_floats(const fluid_sim_t *s) {
 
 fluid_sim_t *fluid_sim_create(cl_dev_t *dev, const fluid_params_t *p, char *err, size_t errlen) {
   if (dev == NULL || dev->program == NULL)
-    return set_err(err, errlen, "[fluid] no built OpenCL program"), NULL;
+    return proto_error_format(err, errlen, "[fluid] no built OpenCL program"), NULL;
   if (params_check(p, err, errlen) != 0)
     return NULL;
   fluid_sim_t *s = calloc(1, sizeof *s);
   if (s == NULL)
-    return set_err(err, errlen, "[fluid] out of memory"), NULL;
+    return proto_error_format(err, errlen, "[fluid] out of memory"), NULL;
   s->dev = dev;
   s->p = *p;
   s->cap = p->max_particles;
@@ -272,7 +268,7 @@ fluid_sim_t *fluid_sim_create(cl_dev_t *dev, const fluid_params_t *p, char *err,
   s->colliders = calloc(MAX_COLLIDERS * COL_STRIDE, sizeof(float));
   if (!s->state || !s->scratch || !s->ids || !s->ids_tmp || !s->cell_of || !s->cell_start ||
       !s->colliders) {
-    set_err(err, errlen, "[fluid] out of memory for %u particles", s->cap);
+    proto_error_format(err, errlen, "[fluid] out of memory for %u particles", s->cap);
     fluid_sim_destroy(s);
     return NULL;
   }
@@ -305,8 +301,8 @@ fluid_sim_t *fluid_sim_create(cl_dev_t *dev, const fluid_params_t *p, char *err,
   if (rc == CL_SUCCESS)
     rc = clFinish(dev->queue);
   if (rc != CL_SUCCESS) {
-    set_err(err, errlen, "[fluid] device buffers for %u particles: %s", s->cap,
-            cl_dev_strerror(rc));
+    proto_error_format(err, errlen, "[fluid] device buffers for %u particles: %s", s->cap,
+                       cl_dev_strerror(rc));
     fluid_sim_destroy(s);
     return NULL;
   }
@@ -334,9 +330,13 @@ int fluid_sim_set_params(fluid_sim_t *s, const fluid_params_t *p, char *err, siz
   if (params_check(p, err, errlen) != 0)
     return -1;
   if (p->max_particles != s->cap)
-    return set_err(err, errlen, "fluid.max_particles cannot change on a live simulation"), -1;
+    return proto_error_format(err, errlen,
+                              "fluid.max_particles cannot change on a live simulation"),
+           -1;
   if (!inside_bounds(p, s->state, s->stride, s->n))
-    return set_err(err, errlen, "fluid.bounds: particles would lie outside the new bounds"), -1;
+    return proto_error_format(err, errlen,
+                              "fluid.bounds: particles would lie outside the new bounds"),
+           -1;
   fluid_sim_t grid = *s;
   grid.p = *p;
   grid_init(&grid);
@@ -350,7 +350,9 @@ int fluid_sim_set_params(fluid_sim_t *s, const fluid_params_t *p, char *err, siz
       if (cells)
         clReleaseMemObject(cells);
       free(table);
-      return set_err(err, errlen, "[fluid] out of memory for a grid of %u cells", grid.ncells), -1;
+      return proto_error_format(err, errlen, "[fluid] out of memory for a grid of %u cells",
+                                grid.ncells),
+             -1;
     }
     clReleaseMemObject(s->d_cells);
     free(s->cell_start);
@@ -365,21 +367,24 @@ int fluid_sim_set_params(fluid_sim_t *s, const fluid_params_t *p, char *err, siz
 int fluid_sim_set_particles(fluid_sim_t *s, const float *pos, const float *vel, uint32_t n,
                             char *err, size_t errlen) {
   if (n > s->cap)
-    return set_err(err, errlen, "fluid.set_particles: %u particles exceed max_particles %u", n,
-                   s->cap),
+    return proto_error_format(
+               err, errlen, "fluid.set_particles: %u particles exceed max_particles %u", n, s->cap),
            -1;
   if (n > 0 && pos == NULL)
-    return set_err(err, errlen, "fluid.set_particles: no positions"), -1;
+    return proto_error_format(err, errlen, "fluid.set_particles: no positions"), -1;
   for (uint32_t k = 0; k < n; k++) {
     for (int i = 0; i < 3; i++) {
       float x = pos[3 * k + i];
       if (!isfinite(x))
-        return set_err(err, errlen, "fluid.set_particles: position %u is not finite", k), -1;
+        return proto_error_format(err, errlen, "fluid.set_particles: position %u is not finite", k),
+               -1;
       if (x < s->p.bounds_min[i] || x > s->p.bounds_max[i])
-        return set_err(err, errlen, "fluid.set_particles: position %u lies outside the bounds", k),
+        return proto_error_format(err, errlen,
+                                  "fluid.set_particles: position %u lies outside the bounds", k),
                -1;
       if (vel != NULL && !isfinite(vel[3 * k + i]))
-        return set_err(err, errlen, "fluid.set_particles: velocity %u is not finite", k), -1;
+        return proto_error_format(err, errlen, "fluid.set_particles: velocity %u is not finite", k),
+               -1;
     }
   }
   for (uint32_t k = 0; k < n; k++) {
@@ -455,7 +460,7 @@ static void tetra_planes(const robject_t *o, const double r[3][3], float *out) {
 int fluid_sim_set_colliders(fluid_sim_t *s, const robject_t *objs, int n, char *err,
                             size_t errlen) {
   if (n < 0 || (n > 0 && objs == NULL))
-    return set_err(err, errlen, "fluid: no objects array for %d colliders", n), -1;
+    return proto_error_format(err, errlen, "fluid: no objects array for %d colliders", n), -1;
   float recs[MAX_COLLIDERS * COL_STRIDE];
   int count = 0;
   for (int k = 0; k < n && count < MAX_COLLIDERS; k++) {
@@ -468,11 +473,12 @@ int fluid_sim_set_colliders(fluid_sim_t *s, const robject_t *objs, int n, char *
     if (kind < 0)
       continue;
     if (!finite3(o->position) || !finite3(o->rotation) || !finite3(o->scale))
-      return set_err(err, errlen, "objects[%d]: position, rotation and scale must be finite", k),
+      return proto_error_format(err, errlen,
+                                "objects[%d]: position, rotation and scale must be finite", k),
              -1;
     if (kind != COL_PLANE &&
         (fabsf(o->scale[0]) < 1e-12f || fabsf(o->scale[1]) < 1e-12f || fabsf(o->scale[2]) < 1e-12f))
-      return set_err(err, errlen, "objects[%d]: a zero scale cannot collide", k), -1;
+      return proto_error_format(err, errlen, "objects[%d]: a zero scale cannot collide", k), -1;
     float *c = recs + COL_STRIDE * count++;
     memset(c, 0, COL_STRIDE * sizeof(float));
     double r[3][3];
@@ -616,7 +622,7 @@ static int substep(fluid_sim_t *s, float dt, char *err, size_t errlen) {
                               (size_t)s->ncolliders * COL_STRIDE * sizeof(float), s->colliders, 0,
                               NULL, NULL);
   if (rc != CL_SUCCESS)
-    return set_err(err, errlen, "[fluid] upload failed: %s", cl_dev_strerror(rc)), -1;
+    return proto_error_format(err, errlen, "[fluid] upload failed: %s", cl_dev_strerror(rc)), -1;
 
   const fluid_params_t *p = &s->p;
   double h = p->h;
@@ -692,7 +698,7 @@ static int substep(fluid_sim_t *s, float dt, char *err, size_t errlen) {
   rc |= clSetKernelArg(kf, a++, sizeof wall_mu, &wall_mu);
   rc |= clSetKernelArg(kf, a++, sizeof(cl_mem), &s->d_out);
   if (rc != CL_SUCCESS)
-    return set_err(err, errlen, "[fluid] setting kernel arguments failed"), -1;
+    return proto_error_format(err, errlen, "[fluid] setting kernel arguments failed"), -1;
 
   size_t local = LOCAL, global = ((size_t)s->n + LOCAL - 1) / LOCAL * LOCAL;
   rc = clEnqueueNDRangeKernel(q, kd, 1, NULL, &global, &local, 0, NULL, NULL);
@@ -703,7 +709,7 @@ static int substep(fluid_sim_t *s, float dt, char *err, size_t errlen) {
     rc = clEnqueueReadBuffer(q, s->d_out, i == 5, i * s->stride * sizeof(float),
                              s->n * sizeof(float), s->state + i * s->stride, 0, NULL, NULL);
   if (rc != CL_SUCCESS)
-    return set_err(err, errlen, "[fluid] SPH step failed: %s", cl_dev_strerror(rc)), -1;
+    return proto_error_format(err, errlen, "[fluid] SPH step failed: %s", cl_dev_strerror(rc)), -1;
   return 0;
 }
 
@@ -721,7 +727,7 @@ static double max_speed(const fluid_sim_t *s) {
 
 int fluid_sim_step(fluid_sim_t *s, double dt, char *err, size_t errlen) {
   if (!(dt > 0 && dt <= 1))
-    return set_err(err, errlen, "fluid: dt must lie in (0, 1] seconds"), -1;
+    return proto_error_format(err, errlen, "fluid: dt must lie in (0, 1] seconds"), -1;
   emit(s, dt);
   s->frame++;
   s->last_substeps = 0;
