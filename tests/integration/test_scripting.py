@@ -308,6 +308,8 @@ def readme_examples(s):
         readme = open(os.path.join(ROOT, "README.md")).read()
         block = readme.split("With the server from `./run.sh` running:")[1].split("```sh")[1]
         lines = [ln.split("  #")[0].strip() for ln in block.split("```")[0].splitlines()]
+        # "A && B" runs A, then B.
+        lines = [part.strip() for ln in lines for part in ln.split(" && ")]
         lines = [ln for ln in lines if ln.startswith("build/bin/volfx ")]
         s.check(len(lines) >= 10, "the README's examples were found", lines)
         for ln in lines:
@@ -322,7 +324,7 @@ def readme_examples(s):
                 "orbit.volfx made out/ and wrote its frames")
         s.eq(sorted(os.listdir(os.path.join(work, "out")))[:5],
              ["f_000001.png", "f_000002.png", "f_000003.png", "f_000004.png", "f_000005.png"],
-             "watch --seq wrote numbered files on a paused scene")
+             "watch --seq wrote numbered files of the playing scene")
         s.check(os.path.exists(os.path.join(s.srv.data_dir, "shots", "a", "frame_000059.png")),
                 "sequence 0 59 after reset wrote its frames",
                 os.listdir(os.path.join(s.srv.data_dir)))
