@@ -340,7 +340,7 @@ typedef struct batch {
 
 /* Turns the option table into 'b'. Returns 0 or EXIT_USAGE after saying why. */
 static int batch_options(farm_t *f, batch_t *b, const char *val[A_COUNT]) {
-  uint64_t w = 512, h = 512, png_level = 0, aa = 0;
+  uint64_t w = PROTO_DEFAULT_FRAME_SIDE, h = PROTO_DEFAULT_FRAME_SIDE, png_level = 0, aa = 0;
   if (val[A_FIRST] == NULL || val[A_LAST] == NULL || val[A_OUT] == NULL || !val[A_OUT][0]) {
     return usage(f, "needs -s FIRST, -e LAST and -o PATTERN%s", NULL);
   }
@@ -750,7 +750,7 @@ int cli_bake(int argc, char **argv) {
   farm_t f = {.cmd = "bake"};
   const char *val[A_COUNT] = {0};
   const char *scene = NULL;
-  uint64_t last = 0, every = 24, from = 0;
+  uint64_t last = 0, every = PROTO_DEFAULT_BAKE_EVERY, from = 0;
   int rc = parse_args(&f, argc, argv, BAKE_OPTS, val, &scene);
   if (rc != 0) {
     return rc;

@@ -71,7 +71,7 @@ void farm_catch_signals(void) {
 /* A params object naming the main scene, the only one the private server uses. */
 cJSON *farm_main_params(void) {
   cJSON *p = cJSON_CreateObject();
-  cJSON_AddStringToObject(p, "scene", "main");
+  cJSON_AddStringToObject(p, "scene", PROTO_DEFAULT_SCENE);
   return p;
 }
 

@@ -1236,7 +1236,7 @@ static int run_script(cli_t *cli, const char *file) {
 
 /* Connects, authenticates when a token is known, runs the command and disconnects. */
 int main(int argc, char **argv) {
-  cli_t cli = {.scene = "main", .timeout_ms = DEFAULT_TIMEOUT_MS};
+  cli_t cli = {.scene = PROTO_DEFAULT_SCENE, .timeout_ms = DEFAULT_TIMEOUT_MS};
   const char *host = NULL;
   const char *unix_path = NULL;
   const char *token = getenv("VOLFX_TOKEN");

@@ -173,6 +173,15 @@ long proto_b64_decode(const char *src, size_t n, void *dst);
 #define PROTO_BAKE_VERSION 1
 #define PROTO_BAKE_MANIFEST "bake.json"
 #define PROTO_BAKE_FILE "frame_%06llu.snap" /* The frame as unsigned long long. */
+
+/*
+ * Defaults that the server's method table gives and a C client also needs before it can ask the
+ * server (the batch sizes raw frames and checks finished files before it starts one): defined
+ * once here, and used as the table's .def.
+ */
+#define PROTO_DEFAULT_SCENE "main"   /* Every method's 'scene', and volfxd's first scene. */
+#define PROTO_DEFAULT_FRAME_SIDE 512 /* A frame's 'width' and 'height'. */
+#define PROTO_DEFAULT_BAKE_EVERY 24  /* sim.bake's 'every'. */
 /* A new copy of 'doc' reduced to its key, or NULL (not an object, or out of memory). */
 cJSON *proto_bake_key(const cJSON *doc);
 /* Whether documents 'a' and 'b' have equal keys. */

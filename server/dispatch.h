@@ -30,7 +30,7 @@ struct method {
 #define PARAM_SCENE                                                                                \
   {                                                                                                \
     .name = "scene", .type = SCH_STRING, .desc = "Name of the scene.", .max = 63,                  \
-    .def_str = "main"                                                                              \
+    .def_str = PROTO_DEFAULT_SCENE                                                                 \
   }
 
 /* The 'tag' param of the calls that change what a scene's frames show. */

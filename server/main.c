@@ -238,7 +238,7 @@ int main(int argc, char **argv) {
   uv_unref((uv_handle_t *)&reload.stop_watch);
 
   scene_error_t serr = {0};
-  if (!server_add_scene(s, "main", s->cfg.scene[0] ? s->cfg.scene : NULL, &serr)) {
+  if (!server_add_scene(s, PROTO_DEFAULT_SCENE, s->cfg.scene[0] ? s->cfg.scene : NULL, &serr)) {
     LOG(LOG_ERROR, "scene", "cannot load the main scene: %s%s%s", serr.message,
         serr.path[0] ? " at " : "", serr.path);
     server_request_stop(s);

@@ -874,7 +874,7 @@ static const sch_field_t bake_params[] = {
      .unit = "frames",
      .min = 1,
      .max = 1e6,
-     .def = 24},
+     .def = PROTO_DEFAULT_BAKE_EVERY},
     {0}};
 static const sch_field_t list_params[] = {{0}};
 static const sch_field_t cancel_params[] = {{.name = "id",

@@ -42,14 +42,14 @@ double render_clock_ms(uint64_t mono_ns);
        .unit = "pixels",                                                                           \
        .min = 1,                                                                                   \
        .max = INFINITY,                                                                            \
-       .def = 512},                                                                                \
+       .def = PROTO_DEFAULT_FRAME_SIDE},                                                           \
       {.name = "height",                                                                           \
        .type = SCH_INTEGER,                                                                        \
        .desc = "Frame height; at most limits.frame_side (larger is -32003).",                      \
        .unit = "pixels",                                                                           \
        .min = 1,                                                                                   \
        .max = INFINITY,                                                                            \
-       .def = 512},                                                                                \
+       .def = PROTO_DEFAULT_FRAME_SIDE},                                                           \
       {.name = "format",                                                                           \
        .type = SCH_ENUM,                                                                           \
        .desc = "png, rgba8, rgbaf32, jpeg or webp for the beauty aov; f32 for depth and "          \
