@@ -67,6 +67,10 @@ int http_listen(server_t *s) {
                  LWS_SERVER_OPTION_HTTP_HEADERS_SECURITY_BEST_PRACTICES_ENFORCE;
   info.foreign_loops = h->loops;
   info.user = s;
+  /* Plain HTTP connections (file requests) are bounded by libwebsockets' table of sockets: as
+   * many as limits.connections, plus its listener and its own few. WebSockets on top are
+   * counted against limits.connections with the TCP ones (conn_open). */
+  info.fd_limit_per_thread = cfg->limits.connections + 8;
   h->ctx = lws_create_context(&info);
   if (!h->ctx) {
     LOG(LOG_ERROR, "http", "cannot start libwebsockets with the libuv event loop");

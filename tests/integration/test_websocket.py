@@ -217,4 +217,26 @@ def subscriptions_latest_wins(s):
             suite.check("result" in r, "unsubscribed", mock.short(r))
 
 
+@T
+def http_connections_bounded(s):
+    """Plain HTTP connections that never send a request hold at most limits.connections (plus
+    libwebsockets' own few) of the server's sockets; the rest wait in the kernel's backlog, and
+    the server goes on serving once they close."""
+    with start(limits={"connections": 4}) as srv:
+        port = http_port(srv)
+        fds = "/proc/%d/fd" % srv.proc.pid
+        before = len(os.listdir(fds))
+        socks = [socket.create_connection(("127.0.0.1", port), timeout=10) for _ in range(40)]
+        time.sleep(1.5)
+        held = len(os.listdir(fds)) - before
+        suite.check(held <= 4 + 8, "40 idle HTTP connections hold at most 12 sockets",
+                    "%d held" % held)
+        for k in socks:
+            k.close()
+        time.sleep(0.5)
+        with socket.create_connection(("127.0.0.1", port), timeout=10) as k:
+            k.sendall(b"GET / HTTP/1.1\r\nHost: 127.0.0.1:%d\r\n\r\n" % port)
+            suite.check(k.recv(12).startswith(b"HTTP/1.1 200"), "a page is served after them")
+
+
 suite.main()
