@@ -616,7 +616,7 @@ def render_beauty(s):
             ({"width": 100000}, E_LIMIT, "width"), ({"height": 4097}, E_LIMIT, "height"),
             ({"width": 0}, E_PARAMS, "width"), ({"width": -1}, E_PARAMS, "width"),
             ({"width": 1.5}, E_PARAMS, "width"), ({"width": "64"}, E_PARAMS, "width"),
-            ({"format": "jpeg"}, E_PARAMS, "format"),
+            ({"format": "gif"}, E_PARAMS, "format"), ({"quality": 0}, E_PARAMS, "quality"),
             ({"aov": "depth", "format": "png"}, E_PARAMS, "format"),
             ({"aov": "beauty", "format": "f32"}, E_PARAMS, "format"),
             ({"aov": "normals"}, E_PARAMS, "aov"), ({"encoding": "hex"}, E_PARAMS, "encoding"),
