@@ -13,17 +13,7 @@
 #include <string.h>
 
 #include "proto.h"
-
-/* Formats the reason of a refused message into 'buf', which may be NULL or empty. */
-__attribute__((format(printf, 3, 4))) static void set_why(char *buf, size_t len, const char *fmt,
-                                                          ...) {
-  if (buf == NULL || len == 0)
-    return;
-  va_list ap;
-  va_start(ap, fmt);
-  vsnprintf(buf, len, fmt, ap);
-  va_end(ap);
-}
+#include "proto_error.h"
 
 static int is_json_space(char c) {
   return c == ' ' || c == '\t' || c == '\n' || c == '\r';
@@ -89,17 +79,17 @@ static size_t find_bad_byte(const char *s, size_t n, const char **what) {
  */
 cJSON *proto_parse(const char *s, size_t n, char *whybuf, size_t whylen) {
   if (!proto_utf8_valid(s, n)) {
-    set_why(whybuf, whylen, "invalid UTF-8");
+    proto_error_format(whybuf, whylen, "invalid UTF-8");
     return NULL;
   }
   if (!proto_json_depth_ok(s, n, PROTO_MAX_DEPTH)) {
-    set_why(whybuf, whylen, "nesting deeper than %d", PROTO_MAX_DEPTH);
+    proto_error_format(whybuf, whylen, "nesting deeper than %d", PROTO_MAX_DEPTH);
     return NULL;
   }
   const char *what = NULL;
   size_t bad = find_bad_byte(s, n, &what);
   if (bad < n) {
-    set_why(whybuf, whylen, "invalid JSON at byte %zu: %s", bad, what);
+    proto_error_format(whybuf, whylen, "invalid JSON at byte %zu: %s", bad, what);
     return NULL;
   }
 
@@ -107,7 +97,8 @@ cJSON *proto_parse(const char *s, size_t n, char *whybuf, size_t whylen) {
   cJSON *v = n > 0 ? cJSON_ParseWithLengthOpts(s, n, &end, 0) : NULL;
   if (v == NULL) {
     size_t at = (end != NULL && end >= s && end <= s + n) ? (size_t)(end - s) : 0;
-    set_why(whybuf, whylen, "invalid JSON at byte %zu%s", at, n == 0 ? ": empty message" : "");
+    proto_error_format(whybuf, whylen, "invalid JSON at byte %zu%s", at,
+                       n == 0 ? ": empty message" : "");
     return NULL;
   }
   /* cJSON stops after the value; only whitespace may follow it. */
@@ -116,7 +107,7 @@ cJSON *proto_parse(const char *s, size_t n, char *whybuf, size_t whylen) {
     at++;
   if (at < n) {
     cJSON_Delete(v);
-    set_why(whybuf, whylen, "invalid JSON at byte %zu: %s", at, "trailing characters");
+    proto_error_format(whybuf, whylen, "invalid JSON at byte %zu: %s", at, "trailing characters");
     return NULL;
   }
   return v;
