@@ -405,7 +405,11 @@ __kernel void volumes(vfx_frame_t f, vfx_shadow_t sh, __global const float *rest
     }
   }
 
-  /* Over what the earlier passes drew (eq. 9): C = T * behind + the volume's light. */
+  /* Over what the earlier passes drew (eq. 9): C = T * behind + the volume's light. A packet
+   * that took no sample leaves the pixels as they are (tr = 1, no light) without the load and
+   * store, most of the frame outside the volumes. */
+  if (all((tr == 1.0f) & (cr == 0.0f) & (cg == 0.0f) & (cb == 0.0f)))
+    return;
   __global float *out = linear + 4 * o;
   float16 q[4] = {vload16(0, out), vload16(0, out + 4 * row), vload16(0, out + 8 * row),
                   vload16(0, out + 12 * row)};

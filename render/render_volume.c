@@ -707,10 +707,21 @@ static int usable(const rvolume_t *v) {
 
 /* ---- Shadow map ---------------------------------------------------------------------------- */
 
+/* The shadow map's fit is rounded out to a lattice of at most 1/SHADOW_FIT_LATTICE of its side. */
+#define SHADOW_FIT_LATTICE 64
+
 /*
  * Fits the shadow map's plane to the tight boxes of the 'n' entries at 'ents' (those not
  * empty), seen along the light 'l' (unit, towards the light): a square of 'size' texels with a
  * margin of two texels.
+ *
+ * The fitted bounds are rounded out to multiples of a power of two q, the least one that is at
+ * least 1/SHADOW_FIT_LATTICE of the square's side. A playing cloud's tight box changes by a
+ * voxel or so at most steps; the rounded fit moves only when that crosses a multiple of q, so
+ * the map (about 4 ms at 1024², more than the volumes themselves) is kept across most steps
+ * (shadow_cached) rather than rendered again for every frame. The fit depends on the frame's own
+ * boxes only, never on earlier frames, so that a frame is the same however it was reached. It
+ * costs at most 2q of the side, 1/16 of the map's resolution at worst.
  */
 static void fit_shadow(vfx_shadow_t *sh, const vol_entry_t *const *ents, int n, const float l[3],
                        int size) {
@@ -740,6 +751,12 @@ static void fit_shadow(vfx_shadow_t *sh, const vol_entry_t *const *ents, int n, 
         lo[k] = fmin(lo[k], q[k]), hi[k] = fmax(hi[k], q[k]);
     }
   double side = fmax(hi[0] - lo[0], hi[1] - lo[1]);
+  double q = exp2(ceil(log2(side / SHADOW_FIT_LATTICE)));
+  if (q > 0 && isfinite(q)) {
+    for (int k = 0; k < 3; k++)
+      lo[k] = floor(lo[k] / q) * q, hi[k] = ceil(hi[k] / q) * q;
+    side = fmax(hi[0] - lo[0], hi[1] - lo[1]);
+  }
   double texel = side / (size - 4);
   if (!(texel > 0))
     texel = 1e-6;
@@ -1138,8 +1155,6 @@ static int volume_run(renderer_t *r, void *state, const render_scene_t *scene,
                      r->frame.linear, r->frame.pitch, r->frame.rows, local);
   else
     cr = run_low_volumes(r, vs, d, &sh, nd, smap, spitch, local, err, errlen);
-  if (cr == CL_SUCCESS)
-    cr = clFinish(r->dev.queue);
   if (cr != CL_SUCCESS) {
     proto_error_format(err, errlen, "[render] volumes pass failed on %s: %s", r->dev.device_name,
                        cl_dev_strerror(cr));
