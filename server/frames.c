@@ -66,8 +66,9 @@ struct sub {
   server_t *srv;
   conn_t *conn; /* NULL once the subscription has ended. */
   char scene[64];
-  cJSON *params; /* The validated subscribe params (as updated), used for every frame. */
-  char *key;     /* Their view key. */
+  cJSON *params;       /* The validated subscribe params (as updated), used for every frame. */
+  depth_data_t *depth; /* Their depth param's data, decoded once (or NULL). */
+  char *key;           /* Their view key. */
   int base64;
   uint64_t view_gen; /* Counts frames.update calls. */
   cJSON *tag;        /* The newest frames.update tag, or NULL. */
@@ -77,6 +78,7 @@ struct sub {
   uv_timer_t timer;
   int refs;            /* The timer handle and the shots it waits for. */
   int in_flight;       /* Shots it waits for, at most SUB_IN_FLIGHT. */
+  int owed;            /* A tick found SUB_IN_FLIGHT shots in flight: taken when one ends. */
   char *wait_line;     /* A finished frame waiting for the socket. */
   uint64_t wait_since; /* now_ns() when it began to wait. */
   size_t wait_len;
@@ -108,6 +110,7 @@ static void sub_unref(sub_t *sub) {
   if (--sub->refs > 0)
     return;
   cJSON_Delete(sub->params);
+  free(sub->depth);
   free(sub->key);
   cJSON_Delete(sub->tag);
   shot_unref(sub->last);
@@ -149,14 +152,28 @@ static int json_sort_members(cJSON *v) {
 }
 
 /* The view key of validated subscribe params: what a frame looks like, printed canonically
- * (members sorted), without what only says when and how it travels. NULL when out of memory. */
-static char *view_key(const cJSON *params) {
+ * (members sorted), without what only says when and how it travels. A depth buffer's data is
+ * named by its decoded copy 'depth' (its serial) rather than printed: a key compared at every
+ * tick stays short, and only subscriptions sharing one decoded buffer share renders. NULL when
+ * out of memory. */
+static char *view_key(const cJSON *params, const depth_data_t *depth) {
   static const char *const not_view[] = {"fps", "encoding", "repeat", NULL};
   cJSON *v = cJSON_Duplicate(params, 1);
   if (!v)
     return NULL;
   for (int i = 0; not_view[i]; i++)
     cJSON_DeleteItemFromObjectCaseSensitive(v, not_view[i]);
+  cJSON *dz = cJSON_GetObjectItem(v, "depth");
+  if (dz && depth) {
+    char name[32];
+    snprintf(name, sizeof name, "#%llu", (unsigned long long)depth->serial);
+    cJSON *named = cJSON_CreateString(name);
+    if (!named || !cJSON_ReplaceItemInObjectCaseSensitive(dz, "data", named)) {
+      cJSON_Delete(named);
+      cJSON_Delete(v);
+      return NULL;
+    }
+  }
   char *key = json_sort_members(v) == 0 ? cJSON_PrintUnformatted(v) : NULL;
   cJSON_Delete(v);
   return key;
@@ -354,6 +371,8 @@ static cJSON *shot_info(const job_t *j) {
   return p;
 }
 
+static void on_tick(uv_timer_t *t);
+
 static void on_shot_done(job_t *j) {
   shot_t *sh = j->ctx;
   server_t *s = sh->srv;
@@ -386,6 +405,8 @@ static void on_shot_done(job_t *j) {
     }
     cJSON_Delete(w->tag);
     free(w);
+    if (sub->owed && sub->conn && !sub->conn->closing)
+      on_tick(&sub->timer);
     sub_unref(sub);
     shot_unref(sh);
     w = next;
@@ -415,8 +436,8 @@ static shot_t *shot_new(sub_t *sub, scene_entry_t *e, const shown_t *now) {
   cJSON *tag = e->tag ? cJSON_Duplicate(e->tag, 1) : NULL;
   char path[128], msg[512];
   if (!sh || !j || !key || (e->tag && !tag) ||
-      render_job_from_params(sub->srv, e, sub->params, j, path, sizeof path, msg, sizeof msg) !=
-          0) {
+      render_job_from_params(sub->srv, e, sub->params, &sub->depth, j, path, sizeof path, msg,
+                             sizeof msg) != 0) {
     free(sh);
     free(j);
     free(key);
@@ -472,9 +493,14 @@ static void on_tick(uv_timer_t *t) {
   if (same && !cJSON_IsTrue(cJSON_GetObjectItem(sub->params, "repeat")))
     return; /* Nothing the frame shows changed since the last one: nothing new to send. */
   if (sub->in_flight >= SUB_IN_FLIGHT) {
-    sub->dropped++; /* Earlier frames are still in flight: this one is skipped. */
+    /* Earlier frames are still in flight: this one is owed until one of them ends
+     * (on_shot_done), so that a moment's queue on the worker delays a frame rather than
+     * losing it. A second tick while one is owed loses one. */
+    sub->dropped += (uint64_t)sub->owed;
+    sub->owed = 1;
     return;
   }
+  sub->owed = 0;
   if (sub->wait_line && now_ns() - sub->wait_since > SUB_STALL_NS) {
     sub->dropped++; /* The client has not read for a while: render again once it does. */
     return;
@@ -581,12 +607,13 @@ static const sch_field_t unsubscribe_params[] = {{.name = "id",
                                                  {0}};
 
 /* Checks validated subscribe 'params' against the scene and the limits, answering the call when
- * they fail. Returns 0 when a frame can be made of them. */
-static int params_check(call_t *call, scene_entry_t *e, const cJSON *params) {
+ * they fail, with their depth data from '*depth' when set, else decoded into it. Returns 0 when
+ * a frame can be made of them. */
+static int params_check(call_t *call, scene_entry_t *e, const cJSON *params, depth_data_t **depth) {
   job_t probe;
   char path[128], msg[512];
-  int code =
-      render_job_from_params(call->srv, e, params, &probe, path, sizeof path, msg, sizeof msg);
+  int code = render_job_from_params(call->srv, e, params, depth, &probe, path, sizeof path, msg,
+                                    sizeof msg);
   if (code) {
     call_error(call, code, path, "%s", msg);
     return -1;
@@ -625,12 +652,16 @@ static void subscribe(call_t *call) {
   }
   /* Check the params once now, so that a bad subscription is refused rather than dropping
    * every frame. */
-  if (params_check(call, e, call->params) != 0)
+  depth_data_t *depth = NULL;
+  if (params_check(call, e, call->params, &depth) != 0) {
+    free(depth);
     return;
+  }
   sub_t *sub = calloc(1, sizeof *sub);
   if (sub) {
     sub->params = cJSON_Duplicate(call->params, 1);
-    sub->key = view_key(call->params);
+    sub->key = view_key(call->params, depth);
+    sub->depth = depth;
   }
   if (!sub || !sub->params || !sub->key) {
     if (sub) {
@@ -638,6 +669,7 @@ static void subscribe(call_t *call) {
       free(sub->key);
       free(sub);
     }
+    free(depth);
     call_error(call, PROTO_E_INTERNAL, NULL, "internal error: out of memory");
     return;
   }
@@ -691,15 +723,21 @@ static void update(call_t *call) {
     call_error(call, PROTO_E_INVALID_PARAMS, err.path, "invalid params: %s", err.message);
     return;
   }
-  if (params_check(call, e, next) != 0) {
+  /* A new depth buffer is decoded once here; without one, the subscription's stays. */
+  depth_data_t *depth = cJSON_GetObjectItem(call->params, "depth") ? NULL : sub->depth;
+  int bad = params_check(call, e, next, &depth);
+  depth_data_t *fresh = depth != sub->depth ? depth : NULL;
+  if (bad) {
+    free(fresh);
     cJSON_Delete(next);
     return;
   }
   const cJSON *tag = cJSON_GetObjectItem(call->params, "tag");
   cJSON *tag_copy = tag ? cJSON_Duplicate(tag, 1) : NULL;
-  char *key = view_key(next);
+  char *key = view_key(next, depth);
   if (!key || (tag && !tag_copy)) {
     free(key);
+    free(fresh);
     cJSON_Delete(tag_copy);
     cJSON_Delete(next);
     call_error(call, PROTO_E_INTERNAL, NULL, "internal error: out of memory");
@@ -712,6 +750,10 @@ static void update(call_t *call) {
   }
   cJSON_Delete(sub->params);
   sub->params = next;
+  if (fresh) {
+    free(sub->depth);
+    sub->depth = fresh;
+  }
   free(sub->key);
   sub->key = key;
   sub->base64 = is_base64(next);

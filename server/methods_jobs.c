@@ -338,7 +338,7 @@ static void submit_render(seq_job_t *job) {
     return;
   }
   char path[128], msg[512];
-  if (render_job_from_params(s, e, job->params, j, path, sizeof path, msg, sizeof msg) != 0) {
+  if (render_job_from_params(s, e, job->params, NULL, j, path, sizeof path, msg, sizeof msg) != 0) {
     free(j);
     job_end(job, JOB_FAILED, "%s: %s", path, msg);
     return;
@@ -603,7 +603,7 @@ static void render_sequence(call_t *call) {
   /* Check the frame params once now, so that a bad job is refused rather than failing later. */
   job_t probe;
   char path[128], msg[512];
-  int code = render_job_from_params(s, e, p, &probe, path, sizeof path, msg, sizeof msg);
+  int code = render_job_from_params(s, e, p, NULL, &probe, path, sizeof path, msg, sizeof msg);
   if (code) {
     call_error(call, code, path, "%s", msg);
     return;

@@ -68,8 +68,8 @@ static void render_m(call_t *call) {
     return;
   }
   char path[128], msg[512];
-  int code = render_job_from_params(call->srv, e, call->params, &rc->job, path, sizeof path, msg,
-                                    sizeof msg);
+  int code = render_job_from_params(call->srv, e, call->params, NULL, &rc->job, path, sizeof path,
+                                    msg, sizeof msg);
   if (code) {
     free(rc);
     call_error(call, code, path, "%s", msg);

@@ -85,13 +85,43 @@ static int depth_error(char *path, size_t pathlen, char *msg, size_t msglen, con
   return PROTO_E_INVALID_PARAMS;
 }
 
+/* Decodes the data of the validated depth param 'o' into '*out' (malloc'd). Returns 0, or
+ * PROTO_E_INVALID_PARAMS with 'path' and 'msg' naming depth.data. */
+static int depth_decode(const cJSON *o, depth_data_t **out, char *path, size_t pathlen, char *msg,
+                        size_t msglen) {
+  static uint64_t serial;
+  *out = NULL;
+  double w = cJSON_GetObjectItem(o, "width")->valuedouble;
+  double h = cJSON_GetObjectItem(o, "height")->valuedouble;
+  const cJSON *data = cJSON_GetObjectItem(o, "data");
+  size_t len = strlen(data->valuestring), want = (size_t)w * (size_t)h * 4;
+  if (proto_b64_decoded_max(len) < want || proto_b64_decoded_max(len) > want + 3)
+    return depth_error(path, pathlen, msg, msglen, "data",
+                       "holds about %zu bytes, not width x height x 4 = %zu", len / 4 * 3, want);
+  depth_data_t *d = malloc(sizeof *d + proto_b64_decoded_max(len));
+  if (d == NULL)
+    return depth_error(path, pathlen, msg, msglen, "data", "is too large for memory");
+  long got = proto_b64_decode(data->valuestring, len, d->bytes);
+  if (got != (long)want) {
+    free(d);
+    return depth_error(path, pathlen, msg, msglen, "data",
+                       got < 0 ? "is not valid base64" : "holds %ld bytes, not width x height x 4",
+                       got);
+  }
+  d->len = want;
+  d->serial = ++serial;
+  *out = d;
+  return 0;
+}
+
 /*
- * Decodes the 'depth' param 'o' (validated by render_depth_fields) for a frame of j->params'
- * size seen through 'cam' into j->depth. Returns 0 or PROTO_E_INVALID_PARAMS with 'path' and
- * 'msg' naming the member.
+ * Converts the 'depth' param 'o' (validated by render_depth_fields) for a frame of j->params'
+ * size seen through 'cam' into j->depth. Its data comes from '*keep' when that is set, else it
+ * is decoded here and, when 'keep' is not NULL, handed over in '*keep'. Returns 0 or
+ * PROTO_E_INVALID_PARAMS with 'path' and 'msg' naming the member.
  */
-static int depth_from_param(const cJSON *o, job_t *j, const rcamera_t *cam, char *path,
-                            size_t pathlen, char *msg, size_t msglen) {
+static int depth_from_param(const cJSON *o, depth_data_t **keep, job_t *j, const rcamera_t *cam,
+                            char *path, size_t pathlen, char *msg, size_t msglen) {
   double w = cJSON_GetObjectItem(o, "width")->valuedouble;
   double h = cJSON_GetObjectItem(o, "height")->valuedouble;
   if (w != j->params.width)
@@ -117,29 +147,33 @@ static int depth_from_param(const cJSON *o, job_t *j, const rcamera_t *cam, char
   if (ndc && !(far_ > near_))
     return depth_error(path, pathlen, msg, msglen, "far", "%.15g must be greater than near %.15g",
                        far_, near_);
-  const cJSON *data = cJSON_GetObjectItem(o, "data");
-  size_t len = strlen(data->valuestring), want = (size_t)w * (size_t)h * 4;
-  if (proto_b64_decoded_max(len) < want || proto_b64_decoded_max(len) > want + 3)
+  const depth_data_t *pre = keep ? *keep : NULL;
+  depth_data_t *own = NULL;
+  if (pre == NULL) {
+    int rc = depth_decode(o, &own, path, pathlen, msg, msglen);
+    if (rc)
+      return rc;
+    pre = own;
+  }
+  if (pre->len != (size_t)w * (size_t)h * 4) {
+    free(own);
     return depth_error(path, pathlen, msg, msglen, "data",
-                       "holds about %zu bytes, not width x height x 4 = %zu", len / 4 * 3, want);
-  unsigned char *raw = malloc(proto_b64_decoded_max(len));
-  if (raw == NULL)
-    return depth_error(path, pathlen, msg, msglen, "data", "is too large for memory");
-  long got = proto_b64_decode(data->valuestring, len, raw);
-  if (got != (long)want) {
-    free(raw);
-    return depth_error(path, pathlen, msg, msglen, "data",
-                       got < 0 ? "is not valid base64" : "holds %ld bytes, not width x height x 4",
-                       got);
+                       "holds %zu bytes, not width x height x 4", pre->len);
   }
   int reversed = ndc && cJSON_IsTrue(cJSON_GetObjectItem(o, "reversed"));
   char why[256];
-  j->depth = render_depth_make(raw, (uint32_t)w, (uint32_t)h, (render_depth_convention_t)conv,
-                               reversed, near_, far_, cam, why, sizeof why);
-  free(raw);
-  if (j->depth == NULL)
+  j->depth =
+      render_depth_make(pre->bytes, (uint32_t)w, (uint32_t)h, (render_depth_convention_t)conv,
+                        reversed, near_, far_, cam, why, sizeof why);
+  if (j->depth == NULL) {
+    free(own);
     return depth_error(path, pathlen, msg, msglen, "data", "%s%s", why,
                        reversed ? " (reversed)" : "");
+  }
+  if (own && keep)
+    *keep = own;
+  else
+    free(own);
   j->params.depth = j->depth;
   return 0;
 }
@@ -194,8 +228,9 @@ static int camera_override(scene_entry_t *e, const cJSON *over, rcamera_t *cam, 
   return 0;
 }
 
-int render_job_from_params(server_t *s, scene_entry_t *e, const cJSON *params, job_t *j, char *path,
-                           size_t pathlen, char *msg, size_t msglen) {
+int render_job_from_params(server_t *s, scene_entry_t *e, const cJSON *params,
+                           depth_data_t **depth_data, job_t *j, char *path, size_t pathlen,
+                           char *msg, size_t msglen) {
   uint32_t side = s->cfg.limits.frame_side;
   double w = cJSON_GetObjectItem(params, "width")->valuedouble;
   double h = cJSON_GetObjectItem(params, "height")->valuedouble;
@@ -251,8 +286,9 @@ int render_job_from_params(server_t *s, scene_entry_t *e, const cJSON *params, j
   }
   const cJSON *depth = cJSON_GetObjectItem(params, "depth");
   if (depth) {
-    int rc = depth_from_param(depth, j, j->has_camera ? &j->camera : &e->scene->snapshot->camera,
-                              path, pathlen, msg, msglen);
+    int rc = depth_from_param(depth, depth_data, j,
+                              j->has_camera ? &j->camera : &e->scene->snapshot->camera, path,
+                              pathlen, msg, msglen);
     if (rc)
       return rc;
   }
