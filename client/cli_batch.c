@@ -370,9 +370,17 @@ static int batch_options(farm_t *f, batch_t *b, const char *val[A_COUNT]) {
   }
   b->antialias = aa;
   const char *aov = val[A_AOV] != NULL ? val[A_AOV] : "beauty";
-  const char *format = val[A_FORMAT];
+  /* Without --format, a beauty frame takes the format its file name's extension names. */
+  const char *format = val[A_FORMAT], *named = farm_format_of_name(b->pattern);
   if (format == NULL) {
-    format = strcmp(aov, "beauty") == 0 ? "png" : "f32";
+    format = strcmp(aov, "beauty") != 0 ? "f32" : named != NULL ? named : "png";
+  }
+  if (named != NULL && strcmp(named, format) != 0) {
+    fprintf(
+        stderr,
+        "volfx %s: -o '%s' names %s files, but the frames are %s (--format) (see volfx --help)\n",
+        f->cmd, b->pattern, named, format);
+    return EXIT_USAGE;
   }
   static const struct {
     const char *name;

@@ -82,6 +82,9 @@ int farm_parse_u64(const char *s, uint64_t min, uint64_t max, uint64_t *out);
 int farm_is_snapshot(const char *path);
 /* Reads a whole file into a NUL-terminated string (free() it), or NULL with errno set. */
 char *farm_read_text(const char *path);
+/* The encoded frame format a file name's extension names ("png" for .png, "jpeg" for .jpg or
+ * .jpeg, "webp" for .webp, in any case), or NULL. */
+const char *farm_format_of_name(const char *name);
 /*
  * Splits 'path' into its directory part (copied to 'dir', "." when there is none) and the name
  * after the last slash (returned, pointing into 'path').

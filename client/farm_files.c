@@ -10,6 +10,7 @@
 #include <stdio.h>
 #include <stdlib.h>
 #include <string.h>
+#include <strings.h>
 #include <sys/stat.h>
 #include <unistd.h>
 
@@ -52,6 +53,24 @@ int farm_is_snapshot(const char *path) {
 }
 
 /* Reads a whole small file into a NUL-terminated string, or NULL with errno set. */
+/* The encoded format a file name's extension names (.png, .jpg or .jpeg, .webp, in any case),
+ * or NULL. */
+const char *farm_format_of_name(const char *name) {
+  static const struct {
+    const char *ext, *format;
+  } exts[] = {{".png", "png"}, {".jpg", "jpeg"}, {".jpeg", "jpeg"}, {".webp", "webp"}};
+  const char *dot = strrchr(name, '.');
+  if (dot == NULL || strchr(dot, '/') != NULL) {
+    return NULL;
+  }
+  for (size_t i = 0; i < sizeof exts / sizeof exts[0]; i++) {
+    if (strcasecmp(dot, exts[i].ext) == 0) {
+      return exts[i].format;
+    }
+  }
+  return NULL;
+}
+
 char *farm_read_text(const char *path) {
   FILE *fp = fopen(path, "rb");
   if (fp == NULL) {

@@ -13,6 +13,7 @@
 #include <sys/stat.h>
 
 #include "cli_batch.h"
+#include "farm.h"
 #include "proto.h"
 #include "volfx.h"
 
@@ -52,7 +53,8 @@ static const char usage_text[] =
     "  render -o FILE [-W W] [-H H] [--format F] [--aov A] [--layers a,b] [--camera JSON]\n"
     "         [--encoding binary|base64] [--quality Q]\n"
     "                                render one frame into FILE (- for stdout) and print a\n"
-    "                                summary with work_ms; --aov depth|wave_h defaults to f32;\n"
+    "                                summary with work_ms; --aov depth|wave_h defaults to f32,\n"
+    "                                a FILE ending .jpg, .jpeg or .webp to that format;\n"
     "                                F: png, rgba8, rgbaf32, jpeg, webp (Q 1-100; webp 100 is\n"
     "                                lossless), f32\n"
     "  watch [--fps F] [-W W] [-H H] [--format F] [--aov A] [--layers a,b] [--count N]\n"
@@ -96,11 +98,13 @@ static const char usage_text[] =
     "                                render frames FIRST, FIRST+STEP, ... up to LAST of SCENE\n"
     "                                (a preset, a SCENE.json or a snapshot file) into PATTERN,\n"
     "                                each run of # the zero-padded frame number\n"
-    "                                ('shots/a/f_####.png'). A file is written whole or not at\n"
-    "                                all; frames whose file is complete are skipped unless\n"
-    "                                --overwrite. --bake DIR starts from the nearest snapshot\n"
-    "                                of a bake of the same SCENE instead of simulating from\n"
-    "                                its start\n"
+    "                                ('shots/a/f_####.png'; without --format, a PATTERN ending\n"
+    "                                .jpg or .webp gives jpeg or webp, and one naming another\n"
+    "                                format than --format is refused). A file is written\n"
+    "                                whole or not at all; frames whose file is complete are\n"
+    "                                skipped unless --overwrite. --bake DIR starts from the\n"
+    "                                nearest snapshot of a bake of the same SCENE instead of\n"
+    "                                simulating from its start\n"
     "  bake SCENE -e LAST [-k EVERY] -o DIR [--presets DIR] [--device D] [-v]\n"
     "                                simulate SCENE once up to frame LAST, saving\n"
     "                                DIR/frame_NNNNNN.snap every EVERY frames (default 24) and\n"
@@ -420,12 +424,14 @@ static int frame_opt(const cli_t *cli, int argc, char **argv, int *i, cJSON *p) 
   return 0;
 }
 
-/* When "aov" asks for a float image and no format was given, asks for f32. */
-static void default_format(cJSON *p) {
+/* Without a format given: f32 when "aov" asks for a float image, else the format the file name
+ * 'out' (or NULL) names by its extension (farm_format_of_name), else the server's default. */
+static void default_format(cJSON *p, const char *out) {
   const cJSON *aov = cJSON_GetObjectItemCaseSensitive(p, "aov");
-  if (cJSON_IsString(aov) && strcmp(aov->valuestring, "beauty") != 0 &&
-      !cJSON_HasObjectItem(p, "format")) {
-    cJSON_AddStringToObject(p, "format", "f32");
+  int beauty = !cJSON_IsString(aov) || strcmp(aov->valuestring, "beauty") == 0;
+  const char *named = out != NULL ? farm_format_of_name(out) : NULL;
+  if (!cJSON_HasObjectItem(p, "format") && (!beauty || named != NULL)) {
+    cJSON_AddStringToObject(p, "format", beauty ? named : "f32");
   }
 }
 
@@ -733,7 +739,7 @@ static int cmd_render(const cli_t *cli, int argc, char **argv) {
     cJSON_Delete(p);
     return usage_error(cli, "render needs -o FILE%s", NULL);
   }
-  default_format(p);
+  default_format(p, out);
 
   cJSON *r = NULL;
   volfx_attachment_t att;
@@ -844,7 +850,7 @@ static int cmd_watch(const cli_t *cli, int argc, char **argv) {
       return m < 0 ? -m : usage_error(cli, "watch: unexpected '%s'", argv[i]);
     }
   }
-  default_format(p);
+  default_format(p, NULL);
 
   volfx_error_t e;
   int64_t id;
@@ -982,7 +988,7 @@ static int cmd_sequence(const cli_t *cli, int argc, char **argv) {
   cJSON_AddNumberToObject(p, "last", (double)last);
   cJSON_AddNumberToObject(p, "step", (double)step);
   cJSON_AddStringToObject(p, "dir", dir);
-  default_format(p);
+  default_format(p, NULL);
   cJSON *r = NULL;
   volfx_error_t e;
   int rc = volfx_call(cli->conn, "render.sequence", p, &r, NULL, &e);

@@ -163,6 +163,12 @@ def test_cli(cli, work):
     check("work_ms" in out and len(out.strip().splitlines()) == 1,
           "render summary is not one line with work_ms: %r" % out)
 
+    # A .jpg name without --format asks for jpeg.
+    _, out, _ = cli.run("render", "-o", "x.jpg", "-W", "64", "-H", "48")
+    with open(os.path.join(work, "x.jpg"), "rb") as f:
+        head = f.read(3)
+    check(head == b"\xff\xd8\xff" and "jpeg" in out, "x.jpg is not a JPEG: %r, %r" % (head, out))
+
     cli.run("render", "-o", "d.f32", "--format", "f32", "--aov", "depth", "-W", "32", "-H", "16")
     size = os.path.getsize(os.path.join(work, "d.f32"))
     check(size == 4 * 32 * 16, "depth f32 is %d bytes, not %d" % (size, 4 * 32 * 16))

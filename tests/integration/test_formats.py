@@ -184,6 +184,24 @@ def sequence_and_batch(s):
     s.check(p.returncode == 2 and "quality" in p.stderr, "batch --quality 0 is a usage error",
             p.stderr)
 
+    # Without --format the file names' extension picks the format; a name that contradicts
+    # --format is refused before anything is rendered.
+    jpg = cmd[:-1]
+    at = jpg.index("--format")
+    del jpg[at:at + 2]
+    jpg[jpg.index("-o") + 1] = os.path.join(out, "g_###.JPG")
+    p = subprocess.run(jpg + ["demo"], capture_output=True, text=True, timeout=120, env=env)
+    s.check(p.returncode == 0, "volfx batch -o g_###.JPG without --format", p.stderr[-500:])
+    for n in ("g_000.JPG", "g_001.JPG"):
+        with open(os.path.join(out, n), "rb") as f:
+            s.eq(jpeg_size(f.read()), (W, H), "%s is a whole JPEG" % n)
+    clash = cmd[:-1]
+    clash[clash.index("-o") + 1] = os.path.join(out, "h_###.png")
+    p = subprocess.run(clash + ["demo"], capture_output=True, text=True, timeout=60, env=env)
+    s.check(p.returncode == 2 and "names png files" in p.stderr and "webp" in p.stderr,
+            "batch -o h_###.png --format webp is a usage error naming both", p.stderr)
+    s.check(not any(n.startswith("h_") for n in os.listdir(out)), "and writes nothing")
+
 
 if __name__ == "__main__":
     suite.main()
