@@ -9,12 +9,8 @@
 #include <stdlib.h>
 #include <string.h>
 
+#include "fuzz.h"
 #include "scene.h"
-
-static void check(int cond) {
-  if (!cond)
-    abort();
-}
 
 /* Applies 'op' (0: patch, 1: path, 2: changes, 3: JSON Patch) and checks atomicity. */
 static void apply(scene_t *s, int op, const char *path, const cJSON *value) {
@@ -28,20 +24,20 @@ static void apply(scene_t *s, int op, const char *path, const cJSON *value) {
                      : scene_apply_ops(s, value, &err);
   char *after = cJSON_PrintUnformatted(s->doc);
   if (rc != 0) {
-    check(strcmp(before, after) == 0);
-    check(s->version == version && s->snapshot == snap);
-    check(err.message[0] != '\0');
+    REQUIRE(strcmp(before, after) == 0);
+    REQUIRE(s->version == version && s->snapshot == snap);
+    REQUIRE(err.message[0] != '\0');
   } else {
     /* What was accepted validates again, unchanged, but for fluid.count: the scene kept its
      * particles through the change, while a fresh one lays out fluid.initial among the
      * objects as they are now. */
     scene_error_t err2;
     scene_t *copy = scene_create("copy", s->doc, &err2);
-    check(copy != NULL);
+    REQUIRE(copy != NULL);
     cJSON_SetNumberValue(cJSON_GetObjectItem(cJSON_GetObjectItem(copy->doc, "fluid"), "count"),
                          (s->particles ? s->particles->count : 0));
     char *again = cJSON_PrintUnformatted(copy->doc);
-    check(strcmp(again, after) == 0);
+    REQUIRE(strcmp(again, after) == 0);
     free(again);
     scene_destroy(copy);
   }
@@ -54,7 +50,7 @@ int LLVMFuzzerTestOneInput(const uint8_t *data, size_t size) {
   if (!scene) {
     scene_error_t err;
     scene = scene_create("fuzz", NULL, &err);
-    check(scene != NULL);
+    REQUIRE(scene != NULL);
   }
   const uint8_t *nul = memchr(data, 0, size);
   char path[256] = "";
