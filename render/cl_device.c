@@ -224,9 +224,7 @@ int cl_dev_open(cl_dev_t *d, const char *which, char *err, size_t errlen) {
     cl_dev_close(d);
     return -1;
   }
-  /* Profiling times a frame's passes by the markers between them (render.c), so that the
-   * device runs them back to back instead of waiting for the host after each. */
-  d->queue = clCreateCommandQueue(d->context, d->device, CL_QUEUE_PROFILING_ENABLE, &rc);
+  d->queue = clCreateCommandQueue(d->context, d->device, 0, &rc);
   if (d->queue == NULL) {
     proto_error_format(err, errlen, "[cl_dev_open] clCreateCommandQueue on %s failed: %s",
                        d->device_name, cl_dev_strerror(rc));

@@ -37,71 +37,13 @@ static void add_pass(render_output_t *out, const char *name, double ms) {
   }
 }
 
-/*
- * A frame's passes are timed on the device, not by waiting for each: 'marks' holds a marker
- * enqueued before the first pass and one after each pass that ran, and the frame's read-back
- * waits for all of them. A pass's time is from the end of the marker before it to the end of
- * its own (its commands, and any wait for the host to enqueue them); the read-back's from the
- * last marker to its own end.
- */
-typedef struct frame_marks {
-  cl_event ev[RENDER_PASSES_MAX + 2]; /* [0] before the first pass; then one a pass. */
-  const char *name[RENDER_PASSES_MAX + 2];
-  double host_ms[RENDER_PASSES_MAX + 2]; /* now_ms() when each was enqueued (a fallback). */
-  int n;
-} frame_marks_t;
-
-/* Enqueues a marker for the pass 'name' (NULL for the frame's start). */
-static cl_int frame_mark(renderer_t *r, frame_marks_t *m, const char *name) {
-  if (m->n >= (int)(sizeof m->ev / sizeof m->ev[0]))
-    return CL_OUT_OF_RESOURCES;
-  cl_int cr = clEnqueueMarkerWithWaitList(r->dev.queue, 0, NULL, &m->ev[m->n]);
-  if (cr == CL_SUCCESS) {
-    m->name[m->n] = name;
-    m->host_ms[m->n++] = now_ms();
-  }
-  return cr;
-}
-
-/* When the event 'ev' ended, device milliseconds; -1 when the device does not tell. */
-static double event_end_ms(cl_event ev) {
-  cl_ulong t = 0;
-  if (clGetEventProfilingInfo(ev, CL_PROFILING_COMMAND_END, sizeof t, &t, NULL) != CL_SUCCESS)
-    return -1;
-  return (double)t / 1e6;
-}
-
-/* Adds each pass's time to 'out' once the frame has run (see frame_marks_t), 'read' being the
- * read-back's event; the host's times between the markers when the device gives none. */
-static void frame_times(const frame_marks_t *m, cl_event read, double read_host_ms,
-                        render_output_t *out) {
-  double end[RENDER_PASSES_MAX + 3];
-  int device = 1;
-  for (int i = 0; i < m->n && device; i++)
-    device = (end[i] = event_end_ms(m->ev[i])) >= 0;
-  if (device)
-    device = (end[m->n] = event_end_ms(read)) >= 0;
-  for (int i = 1; i <= m->n; i++) {
-    double ms = device ? end[i] - end[i - 1]
-                       : (i < m->n ? m->host_ms[i] : read_host_ms) - m->host_ms[i - 1];
-    add_pass(out, i < m->n ? m->name[i] : "readback", ms > 0 ? ms : 0);
-  }
-}
-
-static void frame_marks_release(frame_marks_t *m) {
-  for (int i = 0; i < m->n; i++)
-    clReleaseEvent(m->ev[i]);
-  m->n = 0;
-}
-
 /* Copies the image part of the padded per-pixel buffer 'buf' ('pixel' bytes a pixel, 'pitch'
- * pixels a row) to 'dst', rows packed, once every command before it has run; 'ev' receives the
- * read's event. */
+ * pixels a row) to 'dst', rows packed. */
 static int read_back(renderer_t *r, cl_mem buf, size_t pixel, size_t pitch,
-                     const render_params_t *p, void *dst, cl_event *ev, char *err, size_t errlen) {
+                     const render_params_t *p, void *dst, char *err, size_t errlen) {
   size_t origin[3] = {0, 0, 0}, region[3] = {p->width * pixel, p->height, 1};
   cl_int cr = clEnqueueReadBufferRect(r->dev.queue, buf, CL_TRUE, origin, origin, region,
-                                      pitch * pixel, 0, p->width * pixel, 0, dst, 0, NULL, ev);
+                                      pitch * pixel, 0, p->width * pixel, 0, dst, 0, NULL, NULL);
   if (cr != CL_SUCCESS) {
     proto_error_format(err, errlen, "[render] readback failed on %s: %s", r->dev.device_name,
                        cl_dev_strerror(cr));
@@ -204,54 +146,36 @@ int renderer_render(renderer_t *r, const render_scene_t *scene, const render_par
   f->base_skipped = 0;
   int run[NPASSES + 1];
   plan_frame(r, scene, p, dp, fmt, run);
-  frame_marks_t marks = {.n = 0};
-  unsigned char *bytes = NULL;
-  cl_event read = NULL;
-  cl_int cr = frame_mark(r, &marks, NULL);
-  for (size_t i = 0; i < NPASSES && cr == CL_SUCCESS; i++) {
+  for (size_t i = 0; i < NPASSES; i++) {
     if (!run[i])
       continue;
+    double t = now_ms();
     const char *ran = passes[i]->name;
     if ((rc = passes[i]->run(r, r->state[i], scene, dp, &ran, err, errlen)) != 0)
-      goto failed;
+      return rc;
     if (ran)
-      cr = frame_mark(r, &marks, ran);
-  }
-  if (cr != CL_SUCCESS) {
-    proto_error_format(err, errlen, "[render] marker failed on %s: %s", r->dev.device_name,
-                       cl_dev_strerror(cr));
-    rc = PROTO_E_DEVICE;
-    goto failed;
+      add_pass(out, ran, now_ms() - t);
   }
 
   size_t nbytes = fmt->bytes_per_pixel * npix;
-  if ((bytes = malloc(nbytes)) == NULL) {
+  unsigned char *bytes = malloc(nbytes);
+  if (bytes == NULL) {
     proto_error_format(err, errlen, "[render] out of memory for a %ux%u frame", p->width,
                        p->height);
-    rc = PROTO_E_INTERNAL;
-    goto failed;
+    return PROTO_E_INTERNAL;
   }
-  if ((rc = read_back(r, f->out, fmt->bytes_per_pixel, f->out_pitch, p, bytes, &read, err,
-                      errlen)) != 0)
-    goto failed;
-  frame_times(&marks, read, now_ms(), out);
-  clReleaseEvent(read);
-  frame_marks_release(&marks);
+  double t = now_ms();
+  if ((rc = read_back(r, f->out, fmt->bytes_per_pixel, f->out_pitch, p, bytes, err, errlen)) != 0) {
+    free(bytes);
+    out->npasses = 0;
+    return rc;
+  }
+  add_pass(out, "readback", now_ms() - t);
   out->bytes = bytes;
   out->nbytes = nbytes;
   out->total_ms = now_ms() - start;
   if (!p->raw && (rc = render_output_encode(fmt, p, out, err, errlen)) != 0)
     out->npasses = 0;
-  return rc;
-
-failed:
-  /* Nothing of the frame may still run once the caller moves on. */
-  clFinish(r->dev.queue);
-  if (read)
-    clReleaseEvent(read);
-  frame_marks_release(&marks);
-  free(bytes);
-  out->npasses = 0;
   return rc;
 }
 

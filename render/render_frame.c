@@ -118,6 +118,8 @@ int render_launch(renderer_t *r, cl_int cr, cl_kernel k, const size_t global[2],
                   const size_t local[2], const char *pass, char *err, size_t errlen) {
   if (cr == CL_SUCCESS)
     cr = clEnqueueNDRangeKernel(r->dev.queue, k, 2, NULL, global, local, 0, NULL, NULL);
+  if (cr == CL_SUCCESS)
+    cr = clFinish(r->dev.queue);
   if (cr != CL_SUCCESS) {
     proto_error_format(err, errlen, "[render] %s pass failed on %s: %s", pass, r->dev.device_name,
                        cl_dev_strerror(cr));

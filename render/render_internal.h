@@ -185,9 +185,8 @@ void *render_state_new(void **state, size_t size, char *err, size_t errlen);
 /* Releases those of the 'nk' kernels and 'nb' buffers that are not NULL. */
 void render_release(cl_kernel *kernels, size_t nk, cl_mem *bufs, size_t nb);
 
-/* Enqueues the 2-D kernel 'k' over 'global' in work-groups of 'local', unless 'cr' (its
- * arguments' setting) already failed; the frame's read-back waits for it (render.c). Returns 0,
- * or -1 with 'err' naming the pass. */
+/* Runs the 2-D kernel 'k' over 'global' in work-groups of 'local' and waits for it, unless 'cr'
+ * (its arguments' setting) already failed. Returns 0, or -1 with 'err' naming the pass. */
 int render_launch(renderer_t *r, cl_int cr, cl_kernel k, const size_t global[2],
                   const size_t local[2], const char *pass, char *err, size_t errlen);
 

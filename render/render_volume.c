@@ -1155,6 +1155,8 @@ static int volume_run(renderer_t *r, void *state, const render_scene_t *scene,
                      r->frame.linear, r->frame.pitch, r->frame.rows, local);
   else
     cr = run_low_volumes(r, vs, d, &sh, nd, smap, spitch, local, err, errlen);
+  if (cr == CL_SUCCESS)
+    cr = clFinish(r->dev.queue);
   if (cr != CL_SUCCESS) {
     proto_error_format(err, errlen, "[render] volumes pass failed on %s: %s", r->dev.device_name,
                        cl_dev_strerror(cr));
