@@ -269,5 +269,47 @@ def bad_depth(s):
                  E_PARAMS, path="depth.width")
 
 
+def next_frame(c, sid):
+    """The next 'frames' notification of subscription 'sid' on 'c': (params, attachment)."""
+    while True:
+        msg, att = c.recv_notification(timeout=60)
+        if msg.get("method") == "frames" and msg["params"].get("id") == sid:
+            return msg["params"], att
+
+
+@T
+def subscription_keeps_its_depth(s):
+    """A subscription's depth buffer clips every frame: the first, one after a frames.update
+    that moves the camera only (the buffer stays), and one after an update with a new buffer;
+    each frame is the same as a render with the same params. A bad update changes nothing."""
+    c = s.srv.connect()
+    scene(c, "sd")
+    ts = [box_t(d) for d, _ in rays()]
+    wall = [0.5 if x < W // 2 else FAR for y in range(H) for x in range(W)]
+    box = [t * cosv if math.isfinite(t) else FAR for t, (_, cosv) in zip(ts, rays())]
+    base = {"scene": "sd", "width": W, "height": H, "format": "rgba8", "layers": ["volumes"],
+            "background": "transparent"}
+    moved = {"eye": [0.6, 1.3, 4.9], "target": list(TARGET)}
+
+    def rendered(**kw):
+        return c.ok("render", dict(base, **kw), timeout=120)[1]
+
+    want = [rendered(depth=depth_param(wall)), rendered(depth=depth_param(wall), camera=moved),
+            rendered(depth=depth_param(box), camera=moved)]
+    s.check(len(set(want)) == 3, "the three views differ")
+    v = s.srv.connect()
+    sid = v.ok("frames.subscribe", dict(base, fps=20, depth=depth_param(wall)))[0]["id"]
+    _, att = next_frame(v, sid)
+    s.check(att == want[0], "the first frame is the render with the same depth buffer")
+    v.ok("frames.update", {"id": sid, "camera": moved})
+    _, att = next_frame(v, sid)
+    s.check(att == want[1], "after a camera-only update the depth buffer still clips the frame")
+    expect_error(s, v, "frames.update", {"id": sid, "width": W + 2}, E_PARAMS, path="depth.width")
+    v.ok("frames.update", {"id": sid, "depth": depth_param(box)})
+    _, att = next_frame(v, sid)
+    s.check(att == want[2], "an update with a new depth buffer clips with it")
+    v.ok("frames.unsubscribe", {"id": sid})
+
+
 if __name__ == "__main__":
     sys.exit(suite.main())
