@@ -16,6 +16,11 @@
 const char *const render_encodings[] = {"binary", "base64", NULL};
 /* The 'background' param's values, in render_background_t's order from RENDER_BG_SCENE. */
 const char *const render_backgrounds[] = {"scene", "transparent", NULL};
+/* How a depth buffer's values are stored, in the 'type' member's order, and their sizes. */
+static const char *const depth_types[] = {"f32", "f16", "u16", NULL};
+enum { DEPTH_F32, DEPTH_F16, DEPTH_U16 };
+static const size_t depth_type_bytes[] = {4, 2, 2};
+
 const sch_field_t render_depth_fields[] = {
     {.name = "width",
      .type = SCH_INTEGER,
@@ -33,8 +38,14 @@ const sch_field_t render_depth_fields[] = {
      .flags = SCH_REQUIRED},
     {.name = "data",
      .type = SCH_STRING,
-     .desc = "Base64 of width x height little-endian f32 values, rows top first.",
+     .desc = "Base64 of width x height little-endian values of 'type', rows top first.",
      .flags = SCH_REQUIRED},
+    {.name = "type",
+     .type = SCH_ENUM,
+     .desc = "f32: float; f16: IEEE half float (half the bytes); u16: unsigned normalized "
+             "(value / 65535), a 16-bit depth buffer, with the ndc_01 convention only.",
+     .enum_values = depth_types,
+     .def_str = "f32"},
     {.name = "convention",
      .type = SCH_ENUM,
      .desc = "linear: distance along the view axis; ray: distance along the pixel's ray (the "
@@ -85,30 +96,68 @@ static int depth_error(char *path, size_t pathlen, char *msg, size_t msglen, con
   return PROTO_E_INVALID_PARAMS;
 }
 
-/* Decodes the data of the validated depth param 'o' into '*out' (malloc'd). Returns 0, or
- * PROTO_E_INVALID_PARAMS with 'path' and 'msg' naming depth.data. */
+/* The float an IEEE 754 binary16 value 'h' stands for (exactly: every half is a float). */
+static float half_to_float(uint16_t h) {
+  uint32_t sign = (uint32_t)(h >> 15) << 31, exp = (h >> 10) & 0x1f, man = h & 0x3ff;
+  float v;
+  if (exp == 0x1f) { /* Infinity or NaN: the float's all-ones exponent. */
+    uint32_t u = sign | 0x7f800000u | man << 13;
+    memcpy(&v, &u, sizeof v);
+    return v;
+  }
+  v = exp == 0 ? ldexpf((float)man, -24) : ldexpf((float)(man | 0x400), (int)exp - 25);
+  return sign ? -v : v;
+}
+
+/* The type index of depth param 'o'. */
+static int depth_type(const cJSON *o) {
+  const cJSON *t = cJSON_GetObjectItem(o, "type");
+  for (int i = 0; t && depth_types[i]; i++)
+    if (strcmp(t->valuestring, depth_types[i]) == 0)
+      return i;
+  return DEPTH_F32;
+}
+
+/* Decodes the data of the validated depth param 'o' into '*out' (malloc'd), as little-endian f32
+ * whatever its type. Returns 0, or PROTO_E_INVALID_PARAMS with 'path' and 'msg' naming
+ * depth.data. */
 static int depth_decode(const cJSON *o, depth_data_t **out, char *path, size_t pathlen, char *msg,
                         size_t msglen) {
   static uint64_t serial;
   *out = NULL;
   double w = cJSON_GetObjectItem(o, "width")->valuedouble;
   double h = cJSON_GetObjectItem(o, "height")->valuedouble;
+  int type = depth_type(o);
+  size_t bytes = depth_type_bytes[type], n = (size_t)w * (size_t)h;
   const cJSON *data = cJSON_GetObjectItem(o, "data");
-  size_t len = strlen(data->valuestring), want = (size_t)w * (size_t)h * 4;
+  size_t len = strlen(data->valuestring), want = n * bytes;
   if (proto_b64_decoded_max(len) < want || proto_b64_decoded_max(len) > want + 3)
     return depth_error(path, pathlen, msg, msglen, "data",
-                       "holds about %zu bytes, not width x height x 4 = %zu", len / 4 * 3, want);
-  depth_data_t *d = malloc(sizeof *d + proto_b64_decoded_max(len));
+                       "holds about %zu bytes, not width x height x %zu = %zu (type %s)",
+                       len / 4 * 3, bytes, want, depth_types[type]);
+  /* A 2-byte type is decoded into the second half of the f32 room and widened in place, front
+   * to back: value i is read from byte 2n + 2i before f32 i is written over bytes 4i to 4i + 3. */
+  depth_data_t *d = malloc(sizeof *d + n * 4 + 3);
   if (d == NULL)
     return depth_error(path, pathlen, msg, msglen, "data", "is too large for memory");
-  long got = proto_b64_decode(data->valuestring, len, d->bytes);
+  unsigned char *raw = d->bytes + (type == DEPTH_F32 ? 0 : n * 2);
+  long got = proto_b64_decode(data->valuestring, len, raw);
   if (got != (long)want) {
     free(d);
     return depth_error(path, pathlen, msg, msglen, "data",
-                       got < 0 ? "is not valid base64" : "holds %ld bytes, not width x height x 4",
-                       got);
+                       got < 0 ? "is not valid base64"
+                               : "holds %ld bytes, not width x height x %zu (type %s)",
+                       got, bytes, depth_types[type]);
   }
-  d->len = want;
+  for (size_t i = 0; type != DEPTH_F32 && i < n; i++) {
+    uint16_t v = (uint16_t)(raw[2 * i] | raw[2 * i + 1] << 8);
+    float f = type == DEPTH_F16 ? half_to_float(v) : (float)v / 65535.0f;
+    uint32_t u;
+    memcpy(&u, &f, sizeof u);
+    for (int k = 0; k < 4; k++)
+      d->bytes[4 * i + k] = (unsigned char)(u >> (8 * k));
+  }
+  d->len = n * 4;
   d->serial = ++serial;
   *out = d;
   return 0;
@@ -147,6 +196,10 @@ static int depth_from_param(const cJSON *o, depth_data_t **keep, job_t *j, const
   if (ndc && !(far_ > near_))
     return depth_error(path, pathlen, msg, msglen, "far", "%.15g must be greater than near %.15g",
                        far_, near_);
+  if (depth_type(o) == DEPTH_U16 && conv != DEPTH_NDC_01)
+    return depth_error(path, pathlen, msg, msglen, "type",
+                       "u16 is a window depth in [0, 1]: it needs the ndc_01 convention, not %s",
+                       render_depth_convention_names[conv]);
   const depth_data_t *pre = keep ? *keep : NULL;
   depth_data_t *own = NULL;
   if (pre == NULL) {

@@ -90,9 +90,18 @@ def box_t(d):
     return tin if tin <= tout and tin > 0 else math.inf
 
 
-def depth_param(values, convention="linear", **kw):
-    data = base64.b64encode(struct.pack("<%df" % len(values), *values)).decode()
-    return dict({"width": W, "height": H, "data": data, "convention": convention}, **kw)
+def depth_param(values, convention="linear", type="f32", **kw):
+    """A depth param of 'values' stored as 'type': f32, f16 (struct's IEEE half) or u16 (each
+    value times 65535, rounded)."""
+    if type == "u16":
+        packed = struct.pack("<%dH" % len(values), *[int(round(v * 65535)) for v in values])
+    else:
+        packed = struct.pack("<%d%s" % (len(values), "f" if type == "f32" else "e"), *values)
+    p = {"width": W, "height": H, "data": base64.b64encode(packed).decode(),
+         "convention": convention}
+    if type != "f32":
+        p["type"] = type
+    return dict(p, **kw)
 
 
 def scene(c, name):
@@ -221,11 +230,17 @@ def depth_conventions(s):
     scene(c, "d")
     rs = rays()
     ts = [box_t(d) for d, _ in rs]
+    # f16 rounds to 11 significant bits, a relative error of up to 2^-11 = 4.9e-4; u16 window
+    # depth steps by 1/65535, which near z = 5 of a 0.1-100 projection is 0.004 units.
     cases = [("linear", {"far": FAR}, 2e-6), ("ray", {"far": FAR}, 2e-6),
              ("ndc_gl", {"near": NEAR, "far": FAR}, 2e-5),
              ("ndc_01", {"near": NEAR, "far": FAR}, 2e-5),
              ("ndc_01", {"near": NEAR, "far": FAR, "reversed": True}, 2e-5),
-             ("ndc_gl", {"near": NEAR, "far": FAR, "reversed": True}, 2e-5)]
+             ("ndc_gl", {"near": NEAR, "far": FAR, "reversed": True}, 2e-5),
+             ("linear", {"far": FAR, "type": "f16"}, 5e-4),
+             ("ray", {"far": FAR, "type": "f16"}, 5e-4),
+             ("ndc_01", {"near": NEAR, "far": FAR, "type": "u16"}, 1.5e-3),
+             ("ndc_01", {"near": NEAR, "far": FAR, "reversed": True, "type": "u16"}, 1.5e-3)]
     for conv, kw, tol in cases:
         vals = [ray_ref(conv, t, cosv, **kw) for t, (_, cosv) in zip(ts, rs)]
         p = {"scene": "d", "width": W, "height": H, "format": "f32", "aov": "depth",
@@ -265,6 +280,19 @@ def bad_depth(s):
     expect_error(s, c, "render", dict(base, depth=depth_param([1.5] * (W * H), "ndc_01", near=NEAR,
                                                            far=FAR)), E_PARAMS, path="depth.data")
     expect_error(s, c, "render", dict(base, background="clear"), E_PARAMS, path="background")
+    # The 2-byte types: a u16 buffer needs the ndc_01 convention; a buffer of f32 bytes given as
+    # f16 has twice the bytes; an f16 infinity or NaN is refused like an f32 one.
+    expect_error(s, c, "render", dict(base, depth=depth_param(good, type="u16")), E_PARAMS,
+                 path="depth.type")
+    expect_error(s, c, "render", dict(base, depth=dict(depth_param(good), type="f16")), E_PARAMS,
+                 path="depth.data")
+    for bad in (float("nan"), float("inf")):
+        vals = list(good)
+        vals[3] = bad
+        expect_error(s, c, "render", dict(base, depth=depth_param(vals, type="f16")), E_PARAMS,
+                     path="depth.data")
+    expect_error(s, c, "render", dict(base, depth=dict(depth_param(good), type="f64")), E_PARAMS,
+                 path="depth.type")
     expect_error(s, c, "frames.subscribe", dict(base, fps=5, depth=dict(depth_param(good), width=3)),
                  E_PARAMS, path="depth.width")
 
