@@ -95,6 +95,18 @@ double render_depth_view_z(render_depth_convention_t conv, double d, double near
 render_depth_t *render_depth_make(const void *le_f32, uint32_t width, uint32_t height,
                                   render_depth_convention_t conv, int reversed, double near_,
                                   double far_, const rcamera_t *cam, char *err, size_t errlen);
+/*
+ * Redraws 'd', made through camera 'from', as camera 'to' sees it at the same size. Every pixel
+ * of 'd' with something in it is placed in the world along its ray; each quad of four
+ * neighbouring pixels on one surface (depths within 10%) is drawn into 'to' as two triangles,
+ * the depth exact for a plane, keeping the nearest. What 'to' sees that 'from' did not
+ * (disoccluded sides, the frame's new edges) holds nothing (+INFINITY), and so does the half
+ * pixel along a silhouette, where no quad spans the step; a quad magnified beyond 4 pixels is
+ * left out. Meant for the small moves of a frame or two. Returns 0, or -1 with 'err' saying why
+ * (out of memory, or a camera that defines no view).
+ */
+int render_depth_reproject(render_depth_t *d, const rcamera_t *from, const rcamera_t *to, char *err,
+                           size_t errlen);
 void render_depth_free(render_depth_t *d);
 
 /* What background pixels show: RENDER_BG_DEFAULT follows the scene's transparent_background. */

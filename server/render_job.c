@@ -71,6 +71,12 @@ const sch_field_t render_depth_fields[] = {
      .type = SCH_BOOL,
      .desc = "ndc conventions: reversed Z (the near plane at 1, the far plane at 0 or -1).",
      .def = 0},
+    {.name = "camera",
+     .type = SCH_ANY,
+     .desc = "The camera the buffer was drawn with, when not the frame's: members of the scene "
+             "camera, as the frame's camera param. The buffer is reprojected into the frame's "
+             "view.",
+     .flags = SCH_NO_DEFAULT},
     {0}};
 
 void render_job_release(job_t *j) {
@@ -170,7 +176,8 @@ static int depth_decode(const cJSON *o, depth_data_t **out, char *path, size_t p
  * PROTO_E_INVALID_PARAMS with 'path' and 'msg' naming the member.
  */
 static int depth_from_param(const cJSON *o, depth_data_t **keep, job_t *j, const rcamera_t *cam,
-                            char *path, size_t pathlen, char *msg, size_t msglen) {
+                            const rcamera_t *drawn, char *path, size_t pathlen, char *msg,
+                            size_t msglen) {
   double w = cJSON_GetObjectItem(o, "width")->valuedouble;
   double h = cJSON_GetObjectItem(o, "height")->valuedouble;
   if (w != j->params.width)
@@ -215,13 +222,22 @@ static int depth_from_param(const cJSON *o, depth_data_t **keep, job_t *j, const
   }
   int reversed = ndc && cJSON_IsTrue(cJSON_GetObjectItem(o, "reversed"));
   char why[256];
+  /* A buffer drawn with another camera is read in that camera, then reprojected. */
+  int moved =
+      drawn && (memcmp(drawn->eye, cam->eye, sizeof cam->eye) != 0 ||
+                memcmp(drawn->target, cam->target, sizeof cam->target) != 0 ||
+                memcmp(drawn->up, cam->up, sizeof cam->up) != 0 || drawn->fov_y != cam->fov_y);
   j->depth =
       render_depth_make(pre->bytes, (uint32_t)w, (uint32_t)h, (render_depth_convention_t)conv,
-                        reversed, near_, far_, cam, why, sizeof why);
+                        reversed, near_, far_, moved ? drawn : cam, why, sizeof why);
   if (j->depth == NULL) {
     free(own);
     return depth_error(path, pathlen, msg, msglen, "data", "%s%s", why,
                        reversed ? " (reversed)" : "");
+  }
+  if (moved) { /* The worker reprojects it into the frame's view (worker.c). */
+    j->depth_camera = *drawn;
+    j->depth_moved = 1;
   }
   if (own && keep)
     *keep = own;
@@ -246,7 +262,7 @@ static int camera_override(scene_entry_t *e, const cJSON *over, rcamera_t *cam, 
                            size_t pathlen, char *msg, size_t msglen) {
   if (!cJSON_IsObject(over)) {
     snprintf(path, pathlen, "camera");
-    snprintf(msg, msglen, "invalid params: camera must be an object of camera members");
+    snprintf(msg, msglen, "invalid params: camera must be an object of its members");
     return PROTO_E_INVALID_PARAMS;
   }
   scene_error_t serr;
@@ -279,6 +295,22 @@ static int camera_override(scene_entry_t *e, const cJSON *over, rcamera_t *cam, 
   cam->far_ = (float)cJSON_GetObjectItem(doc, "far")->valuedouble;
   cJSON_Delete(doc);
   return 0;
+}
+
+/* Rewords a message about the param "camera" as one about "depth.camera": each word that starts
+ * with "camera" gets "depth." before it. */
+static void depth_camera_words(char *msg, size_t msglen) {
+  char out[1024];
+  size_t o = 0;
+  for (const char *p = msg; *p && o + 8 < sizeof out; p++) {
+    if (strncmp(p, "camera", 6) == 0 && (p == msg || p[-1] == ' ' || p[-1] == '"')) {
+      memcpy(out + o, "depth.", 6);
+      o += 6;
+    }
+    out[o++] = *p;
+  }
+  out[o] = '\0';
+  snprintf(msg, msglen, "%s", out);
 }
 
 int render_job_from_params(server_t *s, scene_entry_t *e, const cJSON *params,
@@ -339,9 +371,22 @@ int render_job_from_params(server_t *s, scene_entry_t *e, const cJSON *params,
   }
   const cJSON *depth = cJSON_GetObjectItem(params, "depth");
   if (depth) {
-    int rc = depth_from_param(depth, depth_data, j,
-                              j->has_camera ? &j->camera : &e->scene->snapshot->camera, path,
-                              pathlen, msg, msglen);
+    const cJSON *dcam = cJSON_GetObjectItem(depth, "camera");
+    rcamera_t drawn;
+    if (dcam) {
+      int rc = camera_override(e, dcam, &drawn, path, pathlen, msg, msglen);
+      if (rc) { /* Its path and message name "camera": they are the depth's. */
+        char inner[128];
+        snprintf(inner, sizeof inner, "%s", path);
+        snprintf(path, pathlen, "depth.%s", inner);
+        depth_camera_words(msg, msglen);
+        return rc;
+      }
+    }
+    /* The frame's camera: the override's, or the scene's. */
+    const rcamera_t *cam = j->has_camera ? &j->camera : &e->scene->snapshot->camera;
+    int rc = depth_from_param(depth, depth_data, j, cam, dcam ? &drawn : NULL, path, pathlen, msg,
+                              msglen);
     if (rc)
       return rc;
   }

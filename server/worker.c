@@ -81,6 +81,20 @@ static void worker_main(void *arg) {
     }
     if (j->has_camera)
       j->params.camera = &j->camera;
+    /* A depth buffer drawn with another camera is reprojected here, off the loop thread (about
+     * 5 ms at 640x360). */
+    if (j->depth_moved && j->depth &&
+        render_depth_reproject(j->depth, &j->depth_camera,
+                               j->has_camera ? &j->camera : &j->scene->camera, j->err,
+                               sizeof j->err) != 0) {
+      j->code = PROTO_E_INTERNAL;
+      j->t_done_ns = mono_ns();
+      job_drop_inputs(j);
+      uv_mutex_lock(&w->mu);
+      push(&w->done_head, &w->done_tail, j);
+      uv_async_send(&w->async);
+      continue;
+    }
     /* A format with an encoder is rendered to its raw pixels here and encoded by the encoder
      * thread. */
     int encode = render_format_get(j->params.format)->encode != NULL;

@@ -21,9 +21,12 @@ struct job {
   render_params_t params;
   rcamera_t camera; /* Used when 'has_camera'; params.camera points here. */
   int has_camera;
-  render_depth_t *depth; /* The client's depth buffer, owned; params.depth points here. Freed
-                            with the scene reference (render_job_release, or the worker). */
-  uint64_t frame;        /* The snapshot's simulation frame and time. */
+  render_depth_t *depth;  /* The client's depth buffer, owned; params.depth points here. Freed
+                             with the scene reference (render_job_release, or the worker). */
+  rcamera_t depth_camera; /* When 'depth_moved': the camera 'depth' was drawn with, whose view the
+                             worker reprojects into the frame's before rendering. */
+  int depth_moved;
+  uint64_t frame; /* The snapshot's simulation frame and time. */
   double time;
   unsigned long version; /* The scene's version at the snapshot. */
   render_output_t out;   /* Filled by the worker; out.bytes belongs to the 'done' callback. */

@@ -297,6 +297,53 @@ def bad_depth(s):
                  E_PARAMS, path="depth.width")
 
 
+@T
+def depth_from_another_camera(s):
+    """A buffer drawn with camera A, given with depth.camera A for a frame of camera B, clips as
+    B's own buffer would: against volfx's depth aov of the box seen from B, away from the box's
+    silhouettes (where the reprojection leaves half a pixel empty and cannot know what A did not
+    see) the hits agree and their distances match. A depth.camera equal to the frame's changes
+    nothing."""
+    c = s.srv.connect()
+    scene(c, "rp")
+    a = {"eye": [0.3, 1.7, 2.4], "target": list(TARGET)}
+    b = {"eye": [0.6, 1.6, 2.3], "target": [0.05, 0.5, 0.0]}
+    base = {"scene": "rp", "width": W, "height": H, "format": "f32", "aov": "depth"}
+
+    def depth_of(**kw):
+        return floats(c.ok("render", dict(base, **kw), timeout=120)[1])
+
+    seen_a, seen_b = depth_of(camera=a), depth_of(camera=b)
+    sent = [t if math.isfinite(t) else FAR for t in seen_a]
+    got = depth_of(camera=b, layers=[], depth=depth_param(sent, "ray", far=FAR, camera=a))
+    near = silhouette(seen_b)
+    for _ in range(2):  # Two more pixels around every silhouette pixel.
+        near |= {y * W + x for i in near for y in range(i // W - 1, i // W + 2)
+                 for x in range(i % W - 1, i % W + 2) if 0 <= x < W and 0 <= y < H}
+    rest = [i for i in range(W * H) if i not in near]
+    hits = [i for i in rest if math.isfinite(seen_b[i])]
+    agree = sum(math.isfinite(got[i]) == math.isfinite(seen_b[i]) for i in rest)
+    errs = sorted(abs(got[i] - seen_b[i]) / seen_b[i] for i in hits if math.isfinite(got[i]))
+    s.check(len(hits) > W * H // 8, "the box covers an eighth of the frame from B", len(hits))
+    s.check(agree == len(rest), "away from silhouettes B's hits and misses agree (%d of %d)" %
+            (agree, len(rest)))
+    # A face's depth is drawn exactly (a plane); across a crease between two faces, a quad's
+    # plane cuts the corner.
+    s.check(errs[len(errs) * 9 // 10] < 1e-5 and errs[-1] < 0.02,
+            "and the distances: 90%% within 1e-5 relative (%.2g), all within 2%% (worst %.2g)" %
+            (errs[len(errs) * 9 // 10], errs[-1]))
+    moved = sum(math.isfinite(x) != math.isfinite(y) for x, y in zip(seen_a, seen_b))
+    s.check(moved > W, "the move shifts the box by more than a pixel (%d pixels change)" % moved)
+    plain = c.ok("render", dict(base, camera=b, layers=[],
+                                depth=depth_param(sent, "ray", far=FAR)), timeout=120)[1]
+    same = c.ok("render", dict(base, camera=b, layers=[],
+                               depth=depth_param(sent, "ray", far=FAR, camera=b)), timeout=120)[1]
+    s.check(plain == same, "depth.camera equal to the frame's camera changes nothing")
+    expect_error(s, c, "render", dict(base, depth=depth_param(sent, "ray", far=FAR,
+                                                              camera={"fov_y": 0})),
+                 E_PARAMS, path="depth.camera.fov_y")
+
+
 def next_frame(c, sid):
     """The next 'frames' notification of subscription 'sid' on 'c': (params, attachment)."""
     while True:
