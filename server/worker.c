@@ -70,46 +70,46 @@ static void worker_main(void *arg) {
     uv_mutex_unlock(&w->mu);
 
     j->t_started_ns = mono_ns();
+    int encode = 0;
     if (j->run) {
       j->run(w->renderer, j);
-      j->t_done_ns = mono_ns();
-      job_drop_inputs(j);
-      uv_mutex_lock(&w->mu);
-      push(&w->done_head, &w->done_tail, j);
-      uv_async_send(&w->async);
-      continue;
+    } else {
+      if (j->has_camera)
+        j->params.camera = &j->camera;
+      /* A depth buffer drawn with another camera is reprojected here, off the loop thread
+       * (about 5 ms at 640x360), and timed as the frame's first pass, "reproject". */
+      uint64_t t0 = mono_ns();
+      int moved = j->depth_moved && j->depth;
+      if (moved && render_depth_reproject(j->depth, &j->depth_camera,
+                                          j->has_camera ? &j->camera : &j->scene->camera, j->err,
+                                          sizeof j->err) != 0) {
+        j->code = PROTO_E_INTERNAL;
+      } else {
+        double ms = (double)(mono_ns() - t0) / 1e6;
+        /* A format with an encoder is rendered to its raw pixels here and encoded by the
+         * encoder thread. */
+        encode = render_format_get(j->params.format)->encode != NULL;
+        j->params.raw = encode;
+        j->code =
+            renderer_render(w->renderer, j->scene, &j->params, &j->out, j->err, sizeof j->err);
+        render_output_t *o = &j->out;
+        if (j->code == 0 && moved && o->npasses < RENDER_MAX_PASSES) {
+          memmove(&o->passes[1], &o->passes[0], (size_t)o->npasses * sizeof o->passes[0]);
+          o->passes[0].name = "reproject";
+          o->passes[0].ms = ms;
+          o->npasses++;
+          o->total_ms += ms;
+        }
+      }
     }
-    if (j->has_camera)
-      j->params.camera = &j->camera;
-    /* A depth buffer drawn with another camera is reprojected here, off the loop thread (about
-     * 5 ms at 640x360). */
-    if (j->depth_moved && j->depth &&
-        render_depth_reproject(j->depth, &j->depth_camera,
-                               j->has_camera ? &j->camera : &j->scene->camera, j->err,
-                               sizeof j->err) != 0) {
-      j->code = PROTO_E_INTERNAL;
-      j->t_done_ns = mono_ns();
-      job_drop_inputs(j);
-      uv_mutex_lock(&w->mu);
-      push(&w->done_head, &w->done_tail, j);
-      uv_async_send(&w->async);
-      continue;
-    }
-    /* A format with an encoder is rendered to its raw pixels here and encoded by the encoder
-     * thread. */
-    int encode = render_format_get(j->params.format)->encode != NULL;
-    j->params.raw = encode;
-    j->code = renderer_render(w->renderer, j->scene, &j->params, &j->out, j->err, sizeof j->err);
     j->t_done_ns = mono_ns();
     job_drop_inputs(j);
 
     uv_mutex_lock(&w->mu);
-    if (encode) {
-      if (j->code == 0) {
-        push(&w->encode_head, &w->encode_tail, j);
-        uv_cond_signal(&w->encode_cv);
-        continue;
-      }
+    if (encode && j->code == 0) {
+      push(&w->encode_head, &w->encode_tail, j);
+      uv_cond_signal(&w->encode_cv);
+      continue;
     }
     push(&w->done_head, &w->done_tail, j);
     uv_async_send(&w->async);

@@ -315,7 +315,11 @@ def depth_from_another_camera(s):
 
     seen_a, seen_b = depth_of(camera=a), depth_of(camera=b)
     sent = [t if math.isfinite(t) else FAR for t in seen_a]
-    got = depth_of(camera=b, layers=[], depth=depth_param(sent, "ray", far=FAR, camera=a))
+    r, att = c.ok("render", dict(base, camera=b, layers=[],
+                                 depth=depth_param(sent, "ray", far=FAR, camera=a)), timeout=120)
+    got = floats(att)
+    s.check(list(r["work_ms"])[:1] == ["reproject"], "work_ms times the reprojection first",
+            r["work_ms"])
     near = silhouette(seen_b)
     for _ in range(2):  # Two more pixels around every silhouette pixel.
         near |= {y * W + x for i in near for y in range(i // W - 1, i // W + 2)
