@@ -320,6 +320,8 @@ def readme_examples(s):
             if args and args[0] == "watch":
                 args[args.index("90")] = "5"
             cli(s, *args, cwd=work)
+        with open(os.path.join(work, "frame.jpg"), "rb") as f:
+            s.eq(f.read(3), b"\xff\xd8\xff", "render -o frame.jpg wrote a JPEG")
         s.check(os.path.exists(os.path.join(work, "out", "orbit_3.png")),
                 "orbit.volfx made out/ and wrote its frames")
         s.eq(sorted(os.listdir(os.path.join(work, "out")))[:5],
