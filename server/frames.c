@@ -76,6 +76,7 @@ struct sub {
   shown_t shown; /* What its newest frame (in flight or sent) depends on. */
   shot_t *last;  /* That frame's shot (a reference), or NULL. */
   uv_timer_t timer;
+  uint64_t due;        /* The loop time (uv_now) the timer is armed for (sub_arm_at). */
   int refs;            /* The timer handle and the shots it waits for. */
   int in_flight;       /* Shots it waits for, at most SUB_IN_FLIGHT. */
   int owed;            /* A tick found SUB_IN_FLIGHT shots in flight: taken when one ends. */
@@ -372,6 +373,27 @@ static cJSON *shot_info(const job_t *j) {
 }
 
 static void on_tick(uv_timer_t *t);
+static void on_timer(uv_timer_t *t);
+
+/* Arms the subscription's timer for the loop time 'due', from which ticks follow at whole
+ * intervals (on_timer). */
+static void sub_arm_at(sub_t *sub, uint64_t due) {
+  uint64_t now = uv_now(sub->timer.loop);
+  sub->due = due > now ? due : now;
+  uv_timer_start(&sub->timer, on_timer, sub->due - now, 0);
+}
+
+/* The subscription's tick timer. Each tick is armed for a whole number of intervals after the
+ * one before, not an interval after the callback ran (as a repeating libuv timer is), so that
+ * the loop's lateness does not add up and a stream keeps its rate. */
+static void on_timer(uv_timer_t *t) {
+  sub_t *sub = t->data;
+  uint64_t ms = interval_ms(sub->params), now = uv_now(t->loop), next = sub->due + ms;
+  if (next <= now) /* Late by an interval or more: the ticks missed are not made up. */
+    next += ((now - next) / ms + 1) * ms;
+  sub_arm_at(sub, next);
+  on_tick(t);
+}
 
 static void on_shot_done(job_t *j) {
   shot_t *sh = j->ctx;
@@ -490,17 +512,18 @@ static void on_tick(uv_timer_t *t) {
                  .tag_seq = e->tag_seq,
                  .view_gen = sub->view_gen};
   int same = memcmp(&now, &sub->shown, sizeof now) == 0;
+  int owed = sub->owed; /* Any tick takes an owed one. */
+  sub->owed = 0;
   if (same && !cJSON_IsTrue(cJSON_GetObjectItem(sub->params, "repeat")))
     return; /* Nothing the frame shows changed since the last one: nothing new to send. */
   if (sub->in_flight >= SUB_IN_FLIGHT) {
     /* Earlier frames are still in flight: this one is owed until one of them ends
      * (on_shot_done), so that a moment's queue on the worker delays a frame rather than
      * losing it. A second tick while one is owed loses one. */
-    sub->dropped += (uint64_t)sub->owed;
+    sub->dropped += (uint64_t)owed;
     sub->owed = 1;
     return;
   }
-  sub->owed = 0;
   if (sub->wait_line && now_ns() - sub->wait_since > SUB_STALL_NS) {
     sub->dropped++; /* The client has not read for a while: render again once it does. */
     return;
@@ -563,7 +586,7 @@ void frames_scene_changed(call_t *call) {
       uint64_t ms = interval_ms(sub->params);
       if (strcmp(sub->scene, e->scene->name) != 0 || now - sub->frame_ns < ms * 1000000ull)
         continue;
-      uv_timer_start(&sub->timer, on_tick, ms, ms);
+      sub_arm_at(sub, uv_now(sub->timer.loop) + ms);
       on_tick(&sub->timer);
     }
 }
@@ -685,7 +708,7 @@ static void subscribe(call_t *call) {
   sub->timer.data = sub;
   uint64_t ms = interval_ms(call->params);
   sub_t *twin = sub_twin(s, sub->scene, sub->key, ms);
-  uv_timer_start(&sub->timer, on_tick, twin ? uv_timer_get_due_in(&twin->timer) : 0, ms);
+  sub_arm_at(sub, twin ? twin->due : uv_now(s->loop));
   sub->next = c->subs;
   c->subs = sub;
   s->nsubs++;
@@ -745,8 +768,8 @@ static void update(call_t *call) {
   }
   uint64_t ms = interval_ms(next);
   if (ms != interval_ms(sub->params)) {
-    uint64_t due = uv_timer_get_due_in(&sub->timer);
-    uv_timer_start(&sub->timer, on_tick, due < ms ? due : ms, ms);
+    uint64_t now = uv_now(sub->timer.loop);
+    sub_arm_at(sub, sub->due < now + ms ? sub->due : now + ms);
   }
   cJSON_Delete(sub->params);
   sub->params = next;
