@@ -127,3 +127,28 @@ int render_launch(renderer_t *r, cl_int cr, cl_kernel k, const size_t global[2],
   }
   return 0;
 }
+
+int render_view_basis(const rcamera_t *c, double fw[3], double rt[3], double up[3]) {
+  double len;
+  for (int i = 0; i < 3; i++)
+    fw[i] = (double)c->target[i] - c->eye[i];
+  len = sqrt(fw[0] * fw[0] + fw[1] * fw[1] + fw[2] * fw[2]);
+  if (!(len > 0) || !isfinite(len))
+    return -1;
+  for (int i = 0; i < 3; i++)
+    fw[i] /= len;
+  rt[0] = fw[1] * c->up[2] - fw[2] * c->up[1];
+  rt[1] = fw[2] * c->up[0] - fw[0] * c->up[2];
+  rt[2] = fw[0] * c->up[1] - fw[1] * c->up[0];
+  len = sqrt(rt[0] * rt[0] + rt[1] * rt[1] + rt[2] * rt[2]);
+  double up_len =
+      sqrt((double)c->up[0] * c->up[0] + (double)c->up[1] * c->up[1] + (double)c->up[2] * c->up[2]);
+  if (!(len > 1e-7 * up_len) || !isfinite(len))
+    return -2;
+  for (int i = 0; i < 3; i++)
+    rt[i] /= len;
+  up[0] = rt[1] * fw[2] - rt[2] * fw[1];
+  up[1] = rt[2] * fw[0] - rt[0] * fw[2];
+  up[2] = rt[0] * fw[1] - rt[1] * fw[0];
+  return 0;
+}

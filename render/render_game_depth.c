@@ -86,30 +86,6 @@ render_depth_t *render_depth_make(const void *le_f32s, uint32_t width, uint32_t 
   return d;
 }
 
-/* The orthonormal view basis of 'c' as the renderer builds it (setup_camera in
- * render_objects.c): forward, right, up. Returns -1 for a camera that defines no view. */
-static int view_basis(const rcamera_t *c, double fw[3], double rt[3], double up[3]) {
-  for (int i = 0; i < 3; i++)
-    fw[i] = (double)c->target[i] - c->eye[i];
-  double len = sqrt(fw[0] * fw[0] + fw[1] * fw[1] + fw[2] * fw[2]);
-  if (!(len > 0) || !isfinite(len))
-    return -1;
-  for (int i = 0; i < 3; i++)
-    fw[i] /= len;
-  rt[0] = fw[1] * c->up[2] - fw[2] * c->up[1];
-  rt[1] = fw[2] * c->up[0] - fw[0] * c->up[2];
-  rt[2] = fw[0] * c->up[1] - fw[1] * c->up[0];
-  len = sqrt(rt[0] * rt[0] + rt[1] * rt[1] + rt[2] * rt[2]);
-  if (!(len > 0) || !isfinite(len))
-    return -1;
-  for (int i = 0; i < 3; i++)
-    rt[i] /= len;
-  up[0] = rt[1] * fw[2] - rt[2] * fw[1];
-  up[1] = rt[2] * fw[0] - rt[0] * fw[2];
-  up[2] = rt[0] * fw[1] - rt[1] * fw[0];
-  return 0;
-}
-
 /* Neighbouring pixels of a reprojected buffer are one surface when their depths differ by less
  * than this fraction; a quad across a larger step (a silhouette) is not drawn. */
 #define REPROJECT_SAME_SURFACE 0.1
@@ -150,7 +126,7 @@ int render_depth_reproject(render_depth_t *d, const rcamera_t *from, const rcame
                            size_t errlen) {
   uint32_t w = d->width, h = d->height;
   double fs[3], rs[3], us[3], fd[3], rd[3], ud[3];
-  if (view_basis(from, fs, rs, us) != 0 || view_basis(to, fd, rd, ud) != 0 ||
+  if (render_view_basis(from, fs, rs, us) != 0 || render_view_basis(to, fd, rd, ud) != 0 ||
       !(from->fov_y > 0 && from->fov_y < 180) || !(to->fov_y > 0 && to->fov_y < 180)) {
     proto_error_format(err, errlen, "a camera that defines no view");
     return -1;

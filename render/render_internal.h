@@ -190,6 +190,11 @@ void render_release(cl_kernel *kernels, size_t nk, cl_mem *bufs, size_t nb);
 int render_launch(renderer_t *r, cl_int cr, cl_kernel k, const size_t global[2],
                   const size_t local[2], const char *pass, char *err, size_t errlen);
 
+/* The orthonormal view basis of camera 'c' (forward, right, up) that every camera ray of a frame
+ * is built from. Returns 0, -1 when target and eye coincide, or -2 when up is parallel to the
+ * view. */
+int render_view_basis(const rcamera_t *c, double fw[3], double rt[3], double up[3]);
+
 /* Drops the geometry's BVH and the mesh references it keeps. */
 void render_geometry_forget(render_frame_t *f);
 

@@ -436,31 +436,14 @@ done:
  */
 static int setup_camera(vfx_frame_t *f, const rcamera_t *c, uint32_t w, uint32_t h, char *err,
                         size_t errlen) {
-  double fw[3], rt[3], up[3], len;
-  for (int i = 0; i < 3; i++)
-    fw[i] = (double)c->target[i] - c->eye[i];
-  len = sqrt(fw[0] * fw[0] + fw[1] * fw[1] + fw[2] * fw[2]);
-  if (!(len > 0) || !isfinite(len)) {
-    proto_error_format(err, errlen, "camera: target must differ from eye");
+  double fw[3], rt[3], up[3];
+  int basis = render_view_basis(c, fw, rt, up);
+  if (basis != 0) {
+    proto_error_format(err, errlen,
+                       basis == -1 ? "camera: target must differ from eye"
+                                   : "camera: up must not be parallel to the view direction");
     return PROTO_E_INVALID_PARAMS;
   }
-  for (int i = 0; i < 3; i++)
-    fw[i] /= len;
-  rt[0] = fw[1] * c->up[2] - fw[2] * c->up[1];
-  rt[1] = fw[2] * c->up[0] - fw[0] * c->up[2];
-  rt[2] = fw[0] * c->up[1] - fw[1] * c->up[0];
-  len = sqrt(rt[0] * rt[0] + rt[1] * rt[1] + rt[2] * rt[2]);
-  double up_len =
-      sqrt((double)c->up[0] * c->up[0] + (double)c->up[1] * c->up[1] + (double)c->up[2] * c->up[2]);
-  if (!(len > 1e-7 * up_len) || !isfinite(len)) {
-    proto_error_format(err, errlen, "camera: up must not be parallel to the view direction");
-    return PROTO_E_INVALID_PARAMS;
-  }
-  for (int i = 0; i < 3; i++)
-    rt[i] /= len;
-  up[0] = rt[1] * fw[2] - rt[2] * fw[1];
-  up[1] = rt[2] * fw[0] - rt[0] * fw[2];
-  up[2] = rt[0] * fw[1] - rt[1] * fw[0];
   if (!(c->fov_y > 0 && c->fov_y < 180)) {
     proto_error_format(err, errlen, "camera: fov_y must lie in (0, 180) degrees");
     return PROTO_E_INVALID_PARAMS;

@@ -258,11 +258,11 @@ static void vec3_of(const cJSON *o, const char *name, float out[3]) {
 
 /* Builds the camera for a frame: the scene's camera with the 'camera' param's members over
  * it, validated by the scene schema's camera description. */
-static int camera_override(scene_entry_t *e, const cJSON *over, rcamera_t *cam, char *path,
-                           size_t pathlen, char *msg, size_t msglen) {
+static int camera_override(scene_entry_t *e, const cJSON *over, const char *at, rcamera_t *cam,
+                           char *path, size_t pathlen, char *msg, size_t msglen) {
   if (!cJSON_IsObject(over)) {
-    snprintf(path, pathlen, "camera");
-    snprintf(msg, msglen, "invalid params: camera must be an object of its members");
+    snprintf(path, pathlen, "%s", at);
+    snprintf(msg, msglen, "invalid params: %s must be an object of camera members", at);
     return PROTO_E_INVALID_PARAMS;
   }
   scene_error_t serr;
@@ -274,14 +274,14 @@ static int camera_override(scene_entry_t *e, const cJSON *over, rcamera_t *cam, 
   }
   sch_error_t err;
   const sch_field_t *f = sch_path_field(&scene_schema, "camera");
-  if (sch_validate(f, doc, "camera", &err) != 0) {
+  if (sch_validate(f, doc, at, &err) != 0) {
     cJSON_Delete(doc);
     snprintf(path, pathlen, "%s", err.path);
     snprintf(msg, msglen, "invalid params: %s", err.message);
     return PROTO_E_INVALID_PARAMS;
   }
   /* The same checks as scene.set's, so that a camera the scene refuses is not rendered. */
-  if (scene_check_camera(doc, &serr) != 0) {
+  if (scene_check_camera(doc, at, &serr) != 0) {
     cJSON_Delete(doc);
     snprintf(path, pathlen, "%s", serr.path);
     snprintf(msg, msglen, "invalid params: %s", serr.message);
@@ -295,22 +295,6 @@ static int camera_override(scene_entry_t *e, const cJSON *over, rcamera_t *cam, 
   cam->far_ = (float)cJSON_GetObjectItem(doc, "far")->valuedouble;
   cJSON_Delete(doc);
   return 0;
-}
-
-/* Rewords a message about the param "camera" as one about "depth.camera": each word that starts
- * with "camera" gets "depth." before it. */
-static void depth_camera_words(char *msg, size_t msglen) {
-  char out[1024];
-  size_t o = 0;
-  for (const char *p = msg; *p && o + 8 < sizeof out; p++) {
-    if (strncmp(p, "camera", 6) == 0 && (p == msg || p[-1] == ' ' || p[-1] == '"')) {
-      memcpy(out + o, "depth.", 6);
-      o += 6;
-    }
-    out[o++] = *p;
-  }
-  out[o] = '\0';
-  snprintf(msg, msglen, "%s", out);
 }
 
 int render_job_from_params(server_t *s, scene_entry_t *e, const cJSON *params,
@@ -351,7 +335,7 @@ int render_job_from_params(server_t *s, scene_entry_t *e, const cJSON *params,
   j->params.quality = (int)cJSON_GetObjectItem(params, "quality")->valuedouble;
   const cJSON *cam = cJSON_GetObjectItem(params, "camera");
   if (cam) {
-    int rc = camera_override(e, cam, &j->camera, path, pathlen, msg, msglen);
+    int rc = camera_override(e, cam, "camera", &j->camera, path, pathlen, msg, msglen);
     if (rc)
       return rc;
     j->has_camera = 1;
@@ -374,14 +358,9 @@ int render_job_from_params(server_t *s, scene_entry_t *e, const cJSON *params,
     const cJSON *dcam = cJSON_GetObjectItem(depth, "camera");
     rcamera_t drawn;
     if (dcam) {
-      int rc = camera_override(e, dcam, &drawn, path, pathlen, msg, msglen);
-      if (rc) { /* Its path and message name "camera": they are the depth's. */
-        char inner[128];
-        snprintf(inner, sizeof inner, "%s", path);
-        snprintf(path, pathlen, "depth.%s", inner);
-        depth_camera_words(msg, msglen);
+      int rc = camera_override(e, dcam, "depth.camera", &drawn, path, pathlen, msg, msglen);
+      if (rc)
         return rc;
-      }
     }
     /* The frame's camera: the override's, or the scene's. */
     const rcamera_t *cam = j->has_camera ? &j->camera : &e->scene->snapshot->camera;

@@ -80,10 +80,10 @@ typedef proto_error_t scene_error_t;
 /*
  * The camera's checks across its fields, on a camera that passed the schema: target away from
  * eye (relative to their size), up neither zero nor parallel to the view, near before far.
- * scene.set and a render's camera override both use it. Returns 0, or -1 with 'err' naming the
- * field.
+ * scene.set and a render's camera overrides both use it. 'at' is the camera's path in the
+ * request ("camera", "depth.camera"). Returns 0, or -1 with 'err' naming the field.
  */
-int scene_check_camera(const cJSON *camera, scene_error_t *err);
+int scene_check_camera(const cJSON *camera, const char *at, scene_error_t *err);
 
 /* Sets the largest side of a volume file's grid (the cloud_side limit); 256 until set. */
 void scene_set_volume_limit(uint32_t side);

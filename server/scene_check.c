@@ -182,7 +182,7 @@ static int check_objects(const cJSON *objs, scene_error_t *err) {
   return rc;
 }
 
-int scene_check_camera(const cJSON *cam, scene_error_t *err) {
+int scene_check_camera(const cJSON *cam, const char *at, scene_error_t *err) {
   double eye[3], target[3], up[3], fwd[3];
   sch_vec3d(sch_member(cam, "eye"), eye);
   sch_vec3d(sch_member(cam, "target"), target);
@@ -191,28 +191,33 @@ int scene_check_camera(const cJSON *cam, scene_error_t *err) {
     fwd[i] = target[i] - eye[i];
   double flen = norm3(fwd);
   double scale = fmax(1.0, fmax(norm3(eye), norm3(target)));
-  if (!(flen > EYE_TARGET_EPS * scale))
-    return proto_error_set(err, PROTO_E_INVALID_PARAMS, "camera.target",
-                           "camera.target: must differ from camera.eye");
+  char path[64];
+  if (!(flen > EYE_TARGET_EPS * scale)) {
+    snprintf(path, sizeof path, "%s.target", at);
+    return proto_error_set(err, PROTO_E_INVALID_PARAMS, path, "%s: must differ from %s.eye", path,
+                           at);
+  }
   double ulen = norm3(up);
+  snprintf(path, sizeof path, "%s.up", at);
   if (ulen == 0)
-    return proto_error_set(err, PROTO_E_INVALID_PARAMS, "camera.up",
-                           "camera.up: must not be the zero vector");
+    return proto_error_set(err, PROTO_E_INVALID_PARAMS, path, "%s: must not be the zero vector",
+                           path);
   double c[3] = {fwd[1] * up[2] - fwd[2] * up[1], fwd[2] * up[0] - fwd[0] * up[2],
                  fwd[0] * up[1] - fwd[1] * up[0]};
   if (!(norm3(c) > UP_PARALLEL_EPS * flen * ulen))
-    return proto_error_set(err, PROTO_E_INVALID_PARAMS, "camera.up",
-                           "camera.up: must not be parallel to the view direction (target - eye)");
+    return proto_error_set(err, PROTO_E_INVALID_PARAMS, path,
+                           "%s: must not be parallel to the view direction (target - eye)", path);
   double near_ = sch_member(cam, "near")->valuedouble, far_ = sch_member(cam, "far")->valuedouble;
+  snprintf(path, sizeof path, "%s.far", at);
   if (!(near_ < far_))
-    return proto_error_set(err, PROTO_E_INVALID_PARAMS, "camera.far",
-                           "camera.far: %g must be greater than camera.near (%g)", far_, near_);
+    return proto_error_set(err, PROTO_E_INVALID_PARAMS, path,
+                           "%s: %g must be greater than %s.near (%g)", path, far_, at, near_);
   return 0;
 }
 
 /* The checks that involve more than one field, on a document that passed the schema. */
 static int check_cross(const cJSON *doc, scene_error_t *err) {
-  if (scene_check_camera(sch_member(doc, "camera"), err) != 0)
+  if (scene_check_camera(sch_member(doc, "camera"), "camera", err) != 0)
     return -1;
   return check_objects(sch_member(doc, "objects"), err);
 }
